@@ -1,0 +1,27 @@
+# Two commands set up and run everything on a fresh machine with Python >= 3.11 and pip:
+#   make demo    the main job on the bundled data (writes out/)
+#   make test    the whole test suite
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.jaxems-installed
+
+.PHONY: demo test bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m jaxems.demo --out out
+
+test: $(STAMP)
+	$(PY) -m pytest -n 2 -p no:cacheprovider
+
+bench: $(STAMP)
+	$(PY) benchmarks/bench_level1.py
+
+clean:
+	rm -rf out .pytest_cache .hypothesis

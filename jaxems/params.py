@@ -1,0 +1,263 @@
+"""Vehicle parameters: the reference truck of the paper (Table 3) plus capability curves.
+
+`VehicleParams` is a `NamedTuple` of arrays, hence a JAX pytree: every value a sweep may vary
+(mass, battery size, efficiencies, curves) is an array leaf, so new values never recompile.
+Only shapes are structure: the number of gears (`gear_ratio.shape == (n_gears,)`) and the number
+of points of each capability curve.
+
+All leaves are SI: kg, m, s, W, J, rad/s, N m. rpm, km/h and MJ only appear in the TOML files and
+at the command line. `load_vehicle` reads and validates a TOML file (see
+`data/vehicles/reference_truck.toml`); every wrong or missing value is a `VehicleError` naming
+the field and the file.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+
+RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
+KMH = 1.0 / 3.6  # m/s per km/h
+
+DATA_DIR = Path(__file__).resolve().parent.parent / "data"
+VEHICLE_DIR = DATA_DIR / "vehicles"
+
+
+class VehicleError(ValueError):
+    """A vehicle file or parameter value is wrong; the message names the field and the file."""
+
+
+class VehicleParams(NamedTuple):
+    """One vehicle; every field is an array leaf (scalars have shape ``()``).
+
+    Shapes: curves ``te_max_w, te_max: (Nmax,)``, ``te_min_w, te_min: (Nmin,)``,
+    ``gear_ratio: (n_gears,)``; everything else ``()``. A batch of vehicles is the same
+    structure with a leading batch axis on the leaves that vary (see `stack_vehicles`).
+    """
+
+    # vehicle (eqs. 14-18)
+    mass: Any  # kg
+    rho: Any  # kg/m^3 air density
+    c_w: Any  # - drag coefficient
+    area: Any  # m^2 frontal area
+    c_r: Any  # - rolling resistance coefficient
+    g: Any  # m/s^2
+    # engine (eqs. 1-3)
+    eta_e: Any  # - indicated efficiency
+    e0_lin: Any  # W/(rad/s):   P_e0(w) = -(e0_lin w + e0_quad w^2)
+    e0_quad: Any  # W/(rad/s)^2
+    we_min: Any  # rad/s lowest connected engine speed (idle)
+    we_max: Any  # rad/s highest engine speed
+    te_max_w: Any  # rad/s  (Nmax,) speed points of the full-load torque curve
+    te_max: Any  # N m    (Nmax,)
+    te_min_w: Any  # rad/s (Nmin,) speed points of the engine-brake torque curve
+    te_min: Any  # N m    (Nmin,) negative
+    I_e: Any  # kg m^2
+    # motor/generator (eqs. 4-5)
+    eta_m: Any  # -
+    m0_lin: Any  # W/(rad/s):  P_m0(w) = -(m0_lin w + m0_quad w^2)
+    m0_quad: Any  # W/(rad/s)^2
+    wm_max: Any  # rad/s
+    tm_max: Any  # N m   |P_m| <= min(tm_max w, pm_max)
+    pm_max: Any  # W
+    I_m: Any  # kg m^2
+    has_motor: Any  # 1.0 hybrid, 0.0 conventional (motor disconnected for good)
+    # battery (eqs. 6-8)
+    beta: Any  # 1/W   P_bi = P_b + beta P_b^2
+    E_b_max: Any  # J usable size; E_b in [0, E_b_max]
+    soc0: Any  # - initial fraction: E_b(t0) = soc0 * E_b_max
+    # gearbox (eqs. 10-11)
+    gear_ratio: Any  # - (n_gears,) r_G(G) for G = 1..n_gears
+    r_d: Any  # rad/s of gearbox output per m/s of vehicle speed
+    # switching (eq. 12, Appendix C)
+    dt_M: Any  # s open driveline during a mode switch
+    dt_G: Any  # s open driveline during a gear switch
+    # fuel
+    lhv: Any  # J/kg
+    fuel_density: Any  # kg/l
+    # driving (Level 3)
+    a_max: Any  # m/s^2 largest acceleration
+    a_min: Any  # m/s^2 largest deceleration (positive number)
+    v_cruise: Any  # m/s reference cruise speed v0
+    w_pred: Any  # rad/s engine speed Level 3 assumes (CVT at fixed speed, section 6)
+
+    @property
+    def n_gears(self) -> int:
+        return int(np.shape(self.gear_ratio)[-1])
+
+    @property
+    def E_b0(self):
+        """Initial battery energy (J)."""
+        return self.soc0 * self.E_b_max
+
+    def replace(self, **changes) -> VehicleParams:
+        """A copy with some fields changed (array values; shapes of curves may not change)."""
+        bad = set(changes) - set(self._fields)
+        if bad:
+            raise VehicleError(f"unknown vehicle field(s): {', '.join(sorted(bad))}")
+        return self._replace(**{k: np.asarray(v, dtype=np.float64) for k, v in changes.items()})
+
+    def conventional(self) -> VehicleParams:
+        """The same truck with the motor disconnected for good (the non-hybrid reference)."""
+        return self._replace(has_motor=np.float64(0.0))
+
+
+# --------------------------------------------------------------------------------------------
+# TOML schema: (section, key) -> (field, scale, check). `check` is one of
+# "pos" (> 0), "nonneg" (>= 0), "frac" (0 < x <= 1), "unit" (0 <= x <= 1), "any", "curve+",
+# "curve-" (a list of numbers, positive / negative), "speeds" (strictly increasing, >= 0).
+_SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
+    ("vehicle", "mass_kg"): ("mass", 1.0, "pos"),
+    ("vehicle", "air_density_kg_m3"): ("rho", 1.0, "pos"),
+    ("vehicle", "drag_coefficient"): ("c_w", 1.0, "nonneg"),
+    ("vehicle", "frontal_area_m2"): ("area", 1.0, "pos"),
+    ("vehicle", "rolling_resistance"): ("c_r", 1.0, "nonneg"),
+    ("vehicle", "gravity_m_s2"): ("g", 1.0, "pos"),
+    ("engine", "efficiency"): ("eta_e", 1.0, "frac"),
+    ("engine", "speed_min_rpm"): ("we_min", RPM, "pos"),
+    ("engine", "speed_max_rpm"): ("we_max", RPM, "pos"),
+    ("engine", "friction_lin_W_per_rad_s"): ("e0_lin", 1.0, "nonneg"),
+    ("engine", "friction_quad_W_per_rad2_s2"): ("e0_quad", 1.0, "nonneg"),
+    ("engine", "max_torque_rpm"): ("te_max_w", RPM, "speeds"),
+    ("engine", "max_torque_Nm"): ("te_max", 1.0, "curve+"),
+    ("engine", "min_torque_rpm"): ("te_min_w", RPM, "speeds"),
+    ("engine", "min_torque_Nm"): ("te_min", 1.0, "curve-"),
+    ("engine", "inertia_kg_m2"): ("I_e", 1.0, "nonneg"),
+    ("motor", "efficiency"): ("eta_m", 1.0, "frac"),
+    ("motor", "speed_max_rpm"): ("wm_max", RPM, "pos"),
+    ("motor", "torque_max_Nm"): ("tm_max", 1.0, "nonneg"),
+    ("motor", "power_max_W"): ("pm_max", 1.0, "nonneg"),
+    ("motor", "friction_lin_W_per_rad_s"): ("m0_lin", 1.0, "nonneg"),
+    ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "nonneg"),
+    ("motor", "inertia_kg_m2"): ("I_m", 1.0, "nonneg"),
+    ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "pos"),
+    ("battery", "capacity_J"): ("E_b_max", 1.0, "pos"),
+    ("battery", "initial_fraction"): ("soc0", 1.0, "unit"),
+    ("gearbox", "base"): ("_gear_base", 1.0, "pos"),
+    ("gearbox", "gears"): ("_gears", 1.0, "int"),
+    ("gearbox", "final_drive_rpm_per_m_s"): ("r_d", RPM, "pos"),
+    ("switching", "mode_open_s"): ("dt_M", 1.0, "nonneg"),
+    ("switching", "gear_open_s"): ("dt_G", 1.0, "nonneg"),
+    ("fuel", "lower_heating_value_J_per_kg"): ("lhv", 1.0, "pos"),
+    ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "pos"),
+    ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "pos"),
+    ("driving", "max_deceleration_m_s2"): ("a_min", 1.0, "pos"),
+    ("driving", "cruise_speed_km_h"): ("v_cruise", KMH, "pos"),
+    ("driving", "prediction_engine_speed_rpm"): ("w_pred", RPM, "pos"),
+}
+_SECTIONS = sorted({s for s, _ in _SCHEMA})
+
+
+def _check(value: Any, kind: str, where: str) -> np.ndarray:
+    def fail(why: str) -> VehicleError:
+        return VehicleError(f"{where}: {why} (got {value!r})")
+
+    if kind in ("speeds", "curve+", "curve-"):
+        if not isinstance(value, list) or len(value) < 2:
+            raise fail("expected a list of at least 2 numbers")
+        if not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
+            raise fail("expected numbers only")
+        arr = np.asarray(value, dtype=np.float64)
+        if not np.all(np.isfinite(arr)):
+            raise fail("expected finite numbers")
+        if kind == "speeds" and (np.any(arr < 0) or np.any(np.diff(arr) <= 0)):
+            raise fail("speeds must be >= 0 and strictly increasing")
+        if kind == "curve+" and np.any(arr <= 0):
+            raise fail("torques must be positive")
+        if kind == "curve-" and np.any(arr > 0):
+            raise fail("engine-brake torques must be <= 0")
+        return arr
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise fail("expected a number")
+    x = float(value)
+    if not math.isfinite(x):
+        raise fail("expected a finite number")
+    if kind == "pos" and x <= 0:
+        raise fail("must be > 0")
+    if kind == "nonneg" and x < 0:
+        raise fail("must be >= 0")
+    if kind == "frac" and not (0 < x <= 1):
+        raise fail("must be in (0, 1]")
+    if kind == "unit" and not (0 <= x <= 1):
+        raise fail("must be in [0, 1]")
+    if kind == "int" and (x != int(x) or x < 1 or x > 32):
+        raise fail("must be a whole number from 1 to 32")
+    return np.float64(x)
+
+
+def params_from_dict(doc: dict, source: str = "<dict>") -> VehicleParams:
+    """Build and validate `VehicleParams` from a parsed TOML document (sections as in the file)."""
+    for section, body in doc.items():
+        if section == "name":
+            continue
+        if section not in _SECTIONS:
+            raise VehicleError(f"{source}: unknown section [{section}]")
+        if not isinstance(body, dict):
+            raise VehicleError(f"{source}: [{section}] must be a table")
+        for key in body:
+            if (section, key) not in _SCHEMA:
+                raise VehicleError(f"{source}: unknown field {section}.{key}")
+    vals: dict[str, Any] = {}
+    for (section, key), (field, scale, kind) in _SCHEMA.items():
+        where = f"{source}: {section}.{key}"
+        if section not in doc or key not in doc[section]:
+            raise VehicleError(f"{where}: missing")
+        vals[field] = _check(doc[section][key], kind, where) * scale
+    for a, b in (("te_max_w", "te_max"), ("te_min_w", "te_min")):
+        if vals[a].shape != vals[b].shape:
+            raise VehicleError(
+                f"{source}: engine.{a.replace('te_', '').replace('_w', '')}_torque_rpm and "
+                f"_Nm must have the same length"
+            )
+    if vals["we_max"] <= vals["we_min"]:
+        raise VehicleError(f"{source}: engine.speed_max_rpm must exceed engine.speed_min_rpm")
+    n = int(vals.pop("_gears"))
+    base = vals.pop("_gear_base")
+    vals["gear_ratio"] = base ** (n - np.arange(1, n + 1, dtype=np.float64))
+    vals["has_motor"] = np.float64(1.0)
+    return VehicleParams(**vals)
+
+
+def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
+    """Load a vehicle by name (a file in `data/vehicles/`) or by path to a TOML file.
+
+    Raises `VehicleError` (a `ValueError`) naming the file and the field on any bad value.
+    """
+    p = Path(name_or_path)
+    if not p.suffix and not p.exists():
+        p = VEHICLE_DIR / f"{name_or_path}.toml"
+    if not p.is_file():
+        known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
+        raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
+    try:
+        with open(p, "rb") as fh:
+            doc = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise VehicleError(f"{p}: not valid TOML: {e}") from None
+    return params_from_dict(doc, str(p))
+
+
+def with_overrides(
+    vp: VehicleParams, *, mass_kg: float | None = None, battery_MJ: float | None = None
+) -> VehicleParams:
+    """The user-facing overrides of the CLI and sweeps, validated (mass > 0, battery > 0)."""
+    if mass_kg is not None:
+        if not (math.isfinite(mass_kg) and mass_kg > 0):
+            raise VehicleError(f"mass_kg: must be a positive number (got {mass_kg})")
+        vp = vp.replace(mass=mass_kg)
+    if battery_MJ is not None:
+        if not (math.isfinite(battery_MJ) and battery_MJ > 0):
+            raise VehicleError(f"battery_MJ: must be a positive number (got {battery_MJ})")
+        vp = vp.replace(E_b_max=battery_MJ * 1e6)
+    return vp
+
+
+def stack_vehicles(vehicles: list[VehicleParams]) -> VehicleParams:
+    """Stack vehicles of the same structure into one batch (leading axis on every leaf)."""
+    if not vehicles:
+        raise VehicleError("stack_vehicles: empty list")
+    return VehicleParams(*(np.stack(leaves) for leaves in zip(*vehicles, strict=True)))
