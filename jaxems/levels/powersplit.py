@@ -82,7 +82,8 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
     dtype = jnp.result_type(P_d, w, lam, float)
     ce = jnp.asarray(ce)
-    cm = jnp.asarray(cm) & (vp.has_motor > 0.5)
+    needs_motor = jnp.asarray(cm)
+    cm = needs_motor & (vp.has_motor > 0.5)  # a conventional truck has no motor modes
     # engine: speed, slip factor k, output range [e_lo, e_hi] and friction at the crank
     slip = launch & (w < vp.we_min)
     we = jnp.where(slip, vp.we_min, w)
@@ -107,6 +108,7 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     pm_lo = jnp.maximum(-m_lim, P_d - e_hi)
     pm_hi = m_lim
     feasible = (pm_lo <= pm_hi) & jnp.where(ce, e_ok, True) & jnp.where(cm, m_ok, True)
+    feasible = feasible & (cm | ~needs_motor)
     pm_lo = jnp.minimum(pm_lo, pm_hi)
     lo, hi = pb_of_pm(pm_lo), pb_of_pm(pm_hi)
 
