@@ -1,0 +1,297 @@
+"""Routes: a uniform distance grid with road gradient, speed limit and stops.
+
+A `Route` is a `NamedTuple` of arrays only, hence a JAX pytree that `jit` and `vmap` accept.
+Names and paths are not leaves: `route_name(path)` gives the display name of a route file.
+
+Grid. Nodes sit at s_i = i * ds, i = 0 .. n-1, with n - 1 = ceil(L / ds_requested) cells, so
+that the last node is exactly at the route length L and ds = L / (n - 1) <= ds_requested.
+Cell i runs from node i to node i + 1.
+
+Fields (shapes for one route; a batch from `pad_routes` has a leading batch axis):
+
+- ``grade``  (N,)  rise over run of cell i (0.06 = 6 %), the distance-weighted mean of the
+  source rows over the cell (so the elevation at every node is exact); 0 on the last node and
+  on padding.
+- ``vmax``   (N,)  speed limit at node i (m/s): the smallest limit the source gives anywhere in
+  the two cells next to the node, so that the limit holds everywhere between nodes.
+- ``stop``   (N,)  standstill time at node i (s); > 0 marks a stop. A stop in the source is
+  moved to the nearest node (durations of stops that land on the same node add up).
+- ``mask``   (N,)  True for the n valid nodes; padding nodes (False) follow them.
+- ``ds``     ()    cell length (m).
+- ``length`` ()    route length L (m) = (n - 1) * ds.
+
+Start and end. A route whose first node is a stop starts from standstill; otherwise it is
+entered at its speed limit (a "flying start", like a lap of a test track). A route whose last
+node is a stop ends at standstill; otherwise the end is free.
+
+Sparse rows. Both file formats (`jaxems.io`) list rows (s, v, grad, stop) wherever something
+changes; each row's speed v and gradient hold from its s to the next row's s, the last row marks
+the end of the route. A row with v = 0 is a stop of `stop` seconds at its s, and over the stretch
+up to the next row the limit is the next moving row's speed (the vehicle pulls away towards it).
+`route_from_rows` turns rows into a `Route` and checks them; the readers check each value first
+so that errors name the file, line and column.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any, NamedTuple
+
+import numpy as np
+
+KMH = 1.0 / 3.6  # m/s per km/h
+
+DS_DEFAULT = 10.0  # m, default cell length
+DS_RANGE = (1.0, 100.0)  # m, accepted requested cell lengths
+BUCKET = 512  # nodes: routes are padded to a multiple of this so batches share compiles
+SPEED_MAX_KMH = 200.0  # highest accepted speed limit
+GRADE_MAX_PCT = 30.0  # steepest accepted gradient (either sign)
+
+
+class RouteError(ValueError):
+    """A route file or route data is wrong; the message names the file, line and column."""
+
+
+class Route(NamedTuple):
+    """One route on a uniform distance grid (all leaves are arrays; see the module docstring).
+
+    grade: (N,) rise/run per cell; vmax: (N,) m/s per node; stop: (N,) s per node;
+    mask: (N,) bool; ds: () m; length: () m.
+    """
+
+    grade: Any
+    vmax: Any
+    stop: Any
+    mask: Any
+    ds: Any
+    length: Any
+
+
+class Row(NamedTuple):
+    """One source row, in file units, with its line number for error messages."""
+
+    s_m: float
+    v_kmh: float
+    grad_pct: float
+    stop_s: float
+    line: int = 0
+
+
+def _where(source: str, line: int, col: str) -> str:
+    return f"{source}: line {line}, column {col}" if line else f"{source}: row, column {col}"
+
+
+def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]) -> None:
+    """Validate source rows; `cols` are the file's names of (s, v, grad, stop) for messages.
+
+    Raises `RouteError` naming file, line and column for: too few rows, distance not
+    increasing, negative speed or speed above 200 km/h, gradient beyond +-30 %, negative stop
+    time, a stop row (v = 0) with no duration, a stop time on a moving row, no moving row.
+    """
+    c_s, c_v, c_g, c_stop = cols
+    if len(rows) == 0:
+        raise RouteError(f"{source}: empty file (no data rows)")
+    if len(rows) < 2:
+        raise RouteError(
+            f"{source}: line {rows[0].line}: only one data row; a route needs a start row and "
+            f"an end row"
+        )
+    for r in rows:
+        for name, val in zip(cols, (r.s_m, r.v_kmh, r.grad_pct, r.stop_s), strict=True):
+            if not math.isfinite(val):
+                raise RouteError(f"{_where(source, r.line, name)}: not a finite number ({val})")
+        if r.v_kmh < 0:
+            raise RouteError(f"{_where(source, r.line, c_v)}: negative speed ({r.v_kmh:g} km/h)")
+        if r.v_kmh > SPEED_MAX_KMH:
+            raise RouteError(
+                f"{_where(source, r.line, c_v)}: speed {r.v_kmh:g} km/h above "
+                f"{SPEED_MAX_KMH:g} km/h"
+            )
+        if abs(r.grad_pct) > GRADE_MAX_PCT:
+            raise RouteError(
+                f"{_where(source, r.line, c_g)}: gradient {r.grad_pct:g} % beyond "
+                f"+-{GRADE_MAX_PCT:g} %"
+            )
+        if r.stop_s < 0:
+            raise RouteError(f"{_where(source, r.line, c_stop)}: negative stop time ({r.stop_s:g} s)")
+        if r.v_kmh == 0 and r.stop_s == 0:
+            raise RouteError(
+                f"{_where(source, r.line, c_stop)}: a stop (speed 0) with no duration; give the "
+                f"standstill time in seconds"
+            )
+        if r.v_kmh > 0 and r.stop_s > 0:
+            raise RouteError(
+                f"{_where(source, r.line, c_stop)}: stop time {r.stop_s:g} s on a row with speed "
+                f"{r.v_kmh:g} km/h; a stop row has speed 0"
+            )
+    for prev, r in zip(rows[:-1], rows[1:], strict=True):
+        if not r.s_m > prev.s_m:
+            raise RouteError(
+                f"{_where(source, r.line, c_s)}: distance not increasing ({r.s_m:g} m after "
+                f"{prev.s_m:g} m on line {prev.line})"
+            )
+    if all(r.v_kmh == 0 for r in rows[:-1]):
+        raise RouteError(f"{source}: no row with a non-zero speed; the route never moves")
+
+
+def route_from_rows(
+    rows: Sequence[Row],
+    ds: float = DS_DEFAULT,
+    source: str = "<rows>",
+    cols: tuple[str, str, str, str] = ("s", "v", "grad", "stop"),
+    bucket: int | None = BUCKET,
+) -> Route:
+    """Build a `Route` from sparse rows (file units: m, km/h, %, s); see the module docstring.
+
+    ds: requested cell length (m), 1..100; the grid uses L / ceil(L / ds).
+    bucket: pad the node count up to a multiple of this (None: no padding).
+    """
+    if not (isinstance(ds, int | float) and DS_RANGE[0] <= ds <= DS_RANGE[1]):
+        raise RouteError(f"{source}: ds must be a number from {DS_RANGE[0]:g} to {DS_RANGE[1]:g} m "
+                         f"(got {ds!r})")
+    check_rows(rows, source, cols)
+    s_rows = np.array([r.s_m for r in rows], dtype=np.float64)
+    s_rows = s_rows - s_rows[0]
+    v_rows = np.array([r.v_kmh for r in rows], dtype=np.float64) * KMH
+    g_rows = np.array([r.grad_pct for r in rows], dtype=np.float64) / 100.0
+    stop_rows = np.array([r.stop_s for r in rows], dtype=np.float64)
+    L = float(s_rows[-1])
+    n_cells = max(1, math.ceil(L / ds - 1e-9))
+    ds_eff = L / n_cells
+    n = n_cells + 1
+    s_nodes = np.arange(n) * ds_eff
+    s_nodes[-1] = L
+
+    # segments j = 0 .. R-2: [s_j, s_{j+1}) with grade g_j and limit lim_j
+    seg_lim = v_rows[:-1].copy()
+    moving = v_rows > 0
+    nxt = None
+    for j in range(len(rows) - 2, -1, -1):  # stop rows: the next moving row's speed
+        if moving[j + 1]:
+            nxt = v_rows[j + 1]
+        if not moving[j]:
+            seg_lim[j] = nxt if nxt is not None else np.nan
+    if np.any(np.isnan(seg_lim)):  # stops with only stops after them: the previous limit
+        last = np.nan
+        for j in range(len(seg_lim)):
+            last = seg_lim[j] if not np.isnan(seg_lim[j]) else last
+            seg_lim[j] = last
+    # grade: exact cell means from the cumulative rise
+    rise = np.concatenate([[0.0], np.cumsum(g_rows[:-1] * np.diff(s_rows))])
+    rise_nodes = np.interp(s_nodes, s_rows, rise)
+    grade = np.zeros(n)
+    grade[:-1] = np.diff(rise_nodes) / ds_eff
+    # speed limit per cell: the smallest limit of any segment that overlaps the open cell
+    starts = s_rows[:-1]
+    lo = np.searchsorted(starts, s_nodes[:-1], side="right") - 1
+    hi = np.searchsorted(starts, s_nodes[1:], side="left") - 1
+    cell_lim = np.array([seg_lim[a : max(a, b) + 1].min() for a, b in zip(lo, hi, strict=True)])
+    vmax = np.empty(n)
+    vmax[0] = cell_lim[0]
+    vmax[-1] = cell_lim[-1]
+    vmax[1:-1] = np.minimum(cell_lim[:-1], cell_lim[1:])
+    stop = np.zeros(n)
+    for j in np.flatnonzero(stop_rows > 0):
+        stop[int(np.clip(np.rint(s_rows[j] / ds_eff), 0, n - 1))] += stop_rows[j]
+    route = Route(
+        grade=grade,
+        vmax=vmax,
+        stop=stop,
+        mask=np.ones(n, dtype=bool),
+        ds=np.float64(ds_eff),
+        length=np.float64(L),
+    )
+    if bucket:
+        route = pad_route(route, _round_up(n, bucket))
+    return route
+
+
+def _round_up(n: int, bucket: int) -> int:
+    return int(math.ceil(n / bucket) * bucket)
+
+
+def n_nodes(route: Route) -> int:
+    """Number of valid nodes of one route (host-side)."""
+    return int(np.sum(np.asarray(route.mask)))
+
+
+def pad_route(route: Route, n: int) -> Route:
+    """Pad one route to n nodes (mask False, grade 0, stop 0, vmax of the last valid node)."""
+    route = Route(*(np.asarray(x) for x in route))
+    N = route.grade.shape[-1]
+    if route.grade.ndim != 1:
+        raise RouteError("pad_route: expected one route (1-D arrays)")
+    if n < N:
+        if np.any(route.mask[n:]):
+            raise RouteError(f"pad_route: cannot pad a route of {n_nodes(route)} nodes to {n}")
+        return Route(*(x[:n] if x.ndim else x for x in route))
+    k = n - N
+    last = route.vmax[route.mask][-1]
+    return Route(
+        grade=np.concatenate([route.grade, np.zeros(k)]),
+        vmax=np.concatenate([route.vmax, np.full(k, last)]),
+        stop=np.concatenate([route.stop, np.zeros(k)]),
+        mask=np.concatenate([route.mask, np.zeros(k, dtype=bool)]),
+        ds=route.ds,
+        length=route.length,
+    )
+
+
+def pad_routes(routes: Sequence[Route], bucket: int = BUCKET) -> Route:
+    """Stack routes of different lengths into one batch: leaves get a leading axis (B, ...).
+
+    Every route is padded to the same node count, the longest one rounded up to a multiple of
+    `bucket`, so batches of similar routes share one compilation.
+    """
+    if not routes:
+        raise RouteError("pad_routes: empty list of routes")
+    n = _round_up(max(n_nodes(r) for r in routes), bucket)
+    padded = [pad_route(r, n) for r in routes]
+    return Route(*(np.stack(leaves) for leaves in zip(*padded, strict=True)))
+
+
+def unstack_routes(batch: Route) -> list[Route]:
+    """The routes of a batch made by `pad_routes` (each keeps the batch's padding)."""
+    b = np.shape(batch.ds)[0]
+    return [Route(*(np.asarray(x)[i] for x in batch)) for i in range(b)]
+
+
+def node_positions(route: Route):
+    """s (N,) (m): node positions i * ds (padding nodes continue the grid)."""
+    N = np.shape(route.grade)[-1]
+    s = np.arange(N) * np.asarray(route.ds, dtype=np.float64)[..., None]
+    return s
+
+
+def elevation(route: Route):
+    """Elevation (N,) (m) relative to the start, from the cell grades (rise = ds sin(atan g)).
+
+    The distance s is measured along the road, so a cell of length ds rises ds sin(alpha).
+    """
+    g = np.asarray(route.grade)
+    rise = np.asarray(route.ds)[..., None] * np.sin(np.arctan(g)) * np.asarray(route.mask)
+    h = np.concatenate([np.zeros(g.shape[:-1] + (1,)), np.cumsum(rise[..., :-1], axis=-1)], -1)
+    return h
+
+
+def route_summary(route: Route) -> dict:
+    """Host-side facts of one route: length, gradient range, speed-limit range, stops."""
+    m = np.asarray(route.mask)
+    n = int(m.sum())
+    g = np.asarray(route.grade)[: n - 1] * 100.0
+    vmax = np.asarray(route.vmax)[:n] / KMH
+    stop = np.asarray(route.stop)[:n]
+    return {
+        "length_m": float(route.length),
+        "nodes": n,
+        "ds_m": float(route.ds),
+        "gradient_min_pct": float(g.min()),
+        "gradient_max_pct": float(g.max()),
+        "speed_limit_min_km_h": float(vmax.min()),
+        "speed_limit_max_km_h": float(vmax.max()),
+        "stops": int(np.count_nonzero(stop > 0)),
+        "stop_time_s": float(stop.sum()),
+        "starts_stopped": bool(stop[0] > 0),
+        "ends_stopped": bool(stop[n - 1] > 0),
+    }
