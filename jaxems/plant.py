@@ -1,0 +1,449 @@
+"""Closed-loop plant simulation: the truck on the road under a controller (`lax.scan` over time).
+
+The plant is the model of section 2 with what the EMS levels abstract away put back in:
+
+- Mode and gear switches open the driveline for dt_M / dt_G (eq. 12): during that time there
+  is no traction, the vehicle decelerates (or accelerates) under road load, and the switch
+  costs the rotational energy needed to synchronise the new inertias (Appendix C.1), drawn from
+  the battery through the motor (hybrid) or from fuel (conventional truck).
+- The driver follows the Level 3 reference speed indexed by POSITION: after a disturbance it
+  recovers the reference at the position it has reached (it does not catch up in time). The
+  target speed for the end of a step is the planned speed one step ahead of where the plan is
+  at the current position, so that launches from standstill proceed.
+- Stops: the vehicle brakes to rest exactly at each stop position and stands for the stop's
+  duration (open driveline, engine off in a hybrid, idling in a conventional truck).
+- Traction limits: when the active mode and gear cannot deliver the demanded power the vehicle
+  falls short of the reference speed; service brakes take braking power the powertrain cannot.
+- Battery limits: E_b never leaves [0, E_b_max]; the battery power is clipped and the engine
+  covers the rest where it is connected.
+- A low-level protection (Level 0) switches to the cheapest speed-feasible state when the active
+  one becomes infeasible (for example the engine below idle after a slow climb).
+
+Energy accounting: every step records fuel, battery energy, road work F_0 ds, kinetic energy and
+each loss (engine, clutch slip, motor, battery, service brakes, synchronisation, idling), so that
+
+    E_f + (E_b(t0) - E_b(tf)) = W_road + dE_kin + sum(losses)
+
+closes (`energy_balance`). Longitudinal dynamics over a step with the road load F_0 evaluated
+at the step's start: 1/2 m (v1^2 - v0^2) = (P_wheel dt) - F_0 ds,  ds = (v0 + v1)/2 dt.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from . import powertrain as pt
+from .levels import powersplit as ps
+from .params import VehicleParams
+
+MO = ps.MO
+
+
+class Track(NamedTuple):
+    """What the plant needs of the route and of the Level 3 reference (one route).
+
+    ref_s, ref_v: (T+1,) planned position (m) and speed (m/s) at the step boundaries of the
+    Level 3 time grid (ref_s non-decreasing; flat while standing). grid_s: (N,) node positions of
+    the route's distance grid, grade: (N,) gradient (rise/run) from each node to the next.
+    stop_s, stop_t: (N+1,) position (m) and duration (s) of the first stop at or after each node
+    (+inf / 0 where none follows). length: () route length (m).
+    """
+
+    ref_s: Any
+    ref_v: Any
+    grid_s: Any
+    grade: Any
+    stop_s: Any
+    stop_t: Any
+    length: Any
+
+
+class Obs(NamedTuple):
+    """What a controller observes at the start of a plant step (all scalars)."""
+
+    k: Any  # plant step index
+    j: Any  # index of the Level 3 step that contains the current position
+    frac: Any  # fraction of that step's distance already covered
+    s: Any  # position (m)
+    v: Any  # speed (m/s)
+    E_b: Any  # battery energy (J)
+    mode: Any  # active mode (int)
+    gear: Any  # active gear index (int)
+    P_req: Any  # power needed at the wheels to reach the target speed this step (W)
+    v_op: Any  # speed at which the powertrain is evaluated this step (m/s)
+
+
+class Command(NamedTuple):
+    """A controller's decision: requested mode and gear, costate for the split, optional P_b.
+
+    P_b = nan means: split with the Level 1 optimum at `lam`; a finite P_b (for the DP bound)
+    is applied directly, clipped to what the active state and the battery allow.
+    """
+
+    mode: Any
+    gear: Any
+    lam: Any
+    P_b: Any
+
+
+# A controller: (ctrl_params, ctrl_state, vehicle, obs) -> (ctrl_state, Command). Pure; the
+# params pytree carries its arrays (plans, costates) so that runs batch with vmap.
+Controller = Callable[[Any, Any, VehicleParams, Obs], tuple[Any, Command]]
+
+
+class Totals(NamedTuple):
+    """Energies (J) summed over the run; the terms of the energy balance."""
+
+    fuel: Any
+    road: Any  # work against road load, sum of F_0 ds (negative downhill)
+    loss_engine: Any  # fuel energy not delivered at the crank, and engine braking
+    loss_slip: Any  # launch clutch slip
+    loss_motor: Any
+    loss_battery: Any  # beta P_b^2
+    loss_brake: Any  # service brakes
+    loss_sync: Any  # synchronisation of inertias at switches (incl. conversion)
+    mode_switches: Any
+    gear_switches: Any
+    max_shortfall: Any  # largest (reference speed at position - speed), m/s
+    trip_time: Any  # s, time at which the route was completed
+
+
+class PlantState(NamedTuple):
+    s: Any
+    v: Any
+    E_b: Any
+    mode: Any
+    gear: Any
+    open_left: Any  # s of open driveline still to come (a switch in progress)
+    dwell: Any  # s of standstill still to come at the current stop
+    served: Any  # position (m) of the last stop served (-1 before the first)
+    done: Any
+    tot: Totals
+
+
+class Trace(NamedTuple):
+    """Per-step records (n_steps,), for plots and tests."""
+
+    t: Any
+    s: Any
+    v: Any
+    E_b: Any
+    mode: Any
+    gear: Any
+    P_d: Any  # power at the wheels (W): powertrain plus service brakes
+    P_e: Any
+    P_m: Any
+    P_b: Any
+    P_f: Any
+    P_brake: Any
+    lam: Any
+    v_ref: Any
+
+
+class PlantResult(NamedTuple):
+    final: PlantState
+    trace: Trace
+    E_b0: Any
+
+
+# ------------------------------------------------------------------------------ components
+class Ranges(NamedTuple):
+    """Power ranges of one (mode, gear) at gearbox speed w; see `powersplit` for the model."""
+
+    e_lo: Any
+    e_hi: Any
+    k: Any
+    pe0: Any
+    we: Any
+    m_lim: Any
+    pm0: Any
+    ce: Any
+    cm: Any
+    ok: Any
+
+
+def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
+    """Engine output range, slip factor, motor limit and speed feasibility of one state."""
+    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
+    needs_motor = jnp.asarray(ps.MOTOR_CONNECTED)[mode]
+    cm = needs_motor & (vp.has_motor > 0.5)
+    w = vp.gear_ratio[gear] * vp.r_d * v
+    slip = (gear == 0) & (w < vp.we_min)
+    we = jnp.where(slip, vp.we_min, w)
+    k = jnp.where(slip, vp.we_min / jnp.where(w > 0, w, 1.0), 1.0)
+    pe_min, pe_max = pt.engine_power_limits(vp, we)
+    e_ok = (we >= vp.we_min * (1 - 1e-9)) & (we <= vp.we_max) & (w > 0)
+    ok = jnp.where(ce, e_ok, True) & jnp.where(cm, w <= vp.wm_max, True) & (cm | ~needs_motor)
+    return Ranges(
+        e_lo=jnp.where(ce, pe_min / k, 0.0), e_hi=jnp.where(ce, pe_max / k, 0.0), k=k,
+        pe0=jnp.where(ce, pt.engine_friction(vp, we), 0.0), we=we,
+        m_lim=jnp.where(cm, pt.motor_power_limit(vp, w), 0.0),
+        pm0=jnp.where(cm, pt.motor_friction(vp, w), 0.0), ce=ce, cm=cm, ok=ok,
+    )
+
+
+def _pm_of_pb(vp, r: Ranges, P_b):
+    return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
+
+
+def _pb_of_pm(vp, r: Ranges, P_m):
+    d = P_m - r.pm0
+    return jnp.where(r.cm, jnp.where(d > 0, d / vp.eta_m, d * vp.eta_m), 0.0)
+
+
+def _pb_of_pbi(vp, P_bi):
+    """Terminal power P_b with internal power P_bi (inverse of eq. 7, the physical root)."""
+    disc = jnp.maximum(1.0 + 4.0 * vp.beta * P_bi, 0.0)
+    return (jnp.sqrt(disc) - 1.0) / (2.0 * vp.beta)
+
+
+def rotational_energy(vp: VehicleParams, mode, gear, v):
+    """Kinetic energy (J) of the connected engine and motor inertias in state (mode, gear)."""
+    w = vp.gear_ratio[gear] * vp.r_d * v
+    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
+    cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode] & (vp.has_motor > 0.5)
+    we = jnp.maximum(w, jnp.where(gear == 0, vp.we_min, 0.0))  # a slipping engine idles
+    return 0.5 * (jnp.where(ce, vp.I_e * we * we, 0.0) + jnp.where(cm, vp.I_m * w * w, 0.0))
+
+
+def idle_fuel_power(vp: VehicleParams):
+    """Fuel power (W) of the conventional truck's engine idling with the clutch open."""
+    return -pt.engine_friction(vp, vp.we_min) / vp.eta_e
+
+
+def _interp_grade(track: Track, s):
+    i = jnp.clip(jnp.searchsorted(track.grid_s, s, side="right") - 1, 0, track.grade.shape[0] - 1)
+    return track.grade[i]
+
+
+def _ref_position(track: Track, s):
+    """(j, frac): the Level 3 step containing position s and the fraction covered."""
+    T = track.ref_s.shape[0] - 1
+    j = jnp.clip(jnp.searchsorted(track.ref_s[1:], s, side="right"), 0, T - 1)
+    ds = track.ref_s[j + 1] - track.ref_s[j]
+    frac = jnp.clip(jnp.where(ds > 0, (s - track.ref_s[j]) / jnp.where(ds > 0, ds, 1.0), 0.0),
+                    0.0, 1.0)
+    return j, frac
+
+
+def _ref_speed(track: Track, j, frac):
+    T = track.ref_s.shape[0] - 1
+    a = track.ref_v[jnp.clip(j, 0, T)]
+    b = track.ref_v[jnp.clip(j + 1, 0, T)]
+    return a + frac * (b - a)
+
+
+def _speed_after(vp, v0, F0, P_wheel, dt):
+    """End speed v1 >= 0 when the wheels deliver P_wheel for dt against road load F0."""
+    a = 0.5 * vp.mass
+    b = 0.5 * F0 * dt
+    c = -(0.5 * vp.mass * v0 * v0 - b * v0 + P_wheel * dt)
+    disc = b * b - 4.0 * a * c
+    v1 = (-b + jnp.sqrt(jnp.maximum(disc, 0.0))) / (2.0 * a)
+    return jnp.where(disc > 0, jnp.maximum(v1, 0.0), 0.0)
+
+
+# ------------------------------------------------------------------------------ the step
+def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k):
+    st, cparams, cstate = carry
+    z = jnp.zeros_like(st.v)
+    s0, v0 = st.s, st.v
+    j, frac = _ref_position(track, s0)
+    v_ref_here = _ref_speed(track, j, frac)
+    v_tgt = _ref_speed(track, j + 1, frac)
+    grade = _interp_grade(track, s0)
+    F0 = pt.road_load(vp, v0, grade)
+
+    # --- target: follow the reference, stop exactly at the next stop, stand for its duration
+    N = track.grid_s.shape[0]
+    i_node = jnp.clip(jnp.searchsorted(track.grid_s, s0 + 1e-6, side="right") - 1, 0, N - 1)
+    i_next = jnp.where(track.stop_s[i_node] > st.served + 1e-6, i_node, i_node + 1)
+    s_stop = track.stop_s[i_next]
+    t_stop = track.stop_t[i_next]
+    has_stop = jnp.isfinite(s_stop)
+    d_stop = jnp.maximum(s_stop - s0, 0.0)
+    standing = st.dwell > 0
+    v_tgt = jnp.where(standing, 0.0, v_tgt)
+    v_cap = jnp.maximum(2.0 * d_stop / dt - v0, 0.0)
+    v1_tgt = jnp.minimum(jnp.minimum(v_tgt, v0 + vp.a_max * dt), v_cap)
+    ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)
+    P_req = (0.5 * vp.mass * (v1_tgt**2 - v0**2) + F0 * ds_tgt) / dt
+    # the powertrain runs at the step's start speed (at the mean target speed when launching)
+    v_op = jnp.where(v0 > 0, v0, ds_tgt / dt)
+
+    obs = Obs(k=k, j=j, frac=frac, s=s0, v=v0, E_b=st.E_b, mode=st.mode, gear=st.gear,
+              P_req=P_req, v_op=v_op)
+    cstate, cmd = controller(cparams, cstate, vp, obs)
+    lam = jnp.asarray(cmd.lam, dtype=v0.dtype)
+
+    # --- state transitions: standstill forces the open mode; infeasible states are protected
+    at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
+    req_mode = jnp.where(at_rest, MO, cmd.mode).astype(st.mode.dtype)
+    req_gear = jnp.where(at_rest, st.gear, cmd.gear).astype(st.gear.dtype)
+    r_req = state_ranges(vp, req_mode, req_gear, v_op)
+    table = ps.mode_gear_split(vp, P_req, v_op, lam)
+    Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
+    best = jnp.argmin(Hf)
+    n_g = vp.gear_ratio.shape[-1]
+    fallback = ~r_req.ok & jnp.isfinite(Hf[best]) & ~at_rest
+    req_mode = jnp.where(fallback, best // n_g, req_mode).astype(st.mode.dtype)
+    req_gear = jnp.where(fallback, best % n_g, req_gear).astype(st.gear.dtype)
+
+    mode_sw = (req_mode != st.mode) & ~st.done
+    gear_sw = (req_gear != st.gear) & ~st.done & (req_mode != MO)
+    new_open = jnp.maximum(jnp.where(mode_sw, vp.dt_M, 0.0), jnp.where(gear_sw, vp.dt_G, 0.0))
+    open_left = jnp.maximum(st.open_left, new_open)
+    f_open = jnp.clip(open_left / dt, 0.0, 1.0)
+    mode = req_mode
+    gear = jnp.where(req_mode == MO, st.gear, req_gear)
+    # synchronisation energy of the new inertias (App. C.1): from the battery or from fuel
+    dU = jnp.maximum(rotational_energy(vp, mode, gear, v0)
+                     - rotational_energy(vp, st.mode, st.gear, v0), 0.0)
+    dU = jnp.where(mode_sw | gear_sw, dU, 0.0)
+    sync_from_batt = (vp.has_motor > 0.5) & (st.E_b >= dU / vp.eta_m)
+    E_sync_b = jnp.where(sync_from_batt, dU / vp.eta_m, 0.0)
+    E_sync_f = jnp.where(sync_from_batt, 0.0, dU / vp.eta_e)
+
+    # --- power split in the active state
+    r = state_ranges(vp, mode, gear, v_op)
+    traction = (1.0 - f_open) * r.ok
+    cap_hi = traction * (r.e_hi + r.m_lim)
+    P_dem = jnp.minimum(P_req, cap_hi)  # traction-limited demand (brakes take any excess)
+    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
+    cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode]
+    opt = ps._split_one(vp, P_dem, _w(vp, gear, v_op), lam, ce, cm, gear == 0)
+    P_b = jnp.where(jnp.isfinite(cmd.P_b), cmd.P_b, opt.P_b)
+    P_b = jnp.where(traction > 0, P_b, 0.0)
+    # battery power range of this state at this demand, and the battery's energy limits
+    pb_lo = _pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))
+    pb_hi = _pb_of_pm(vp, r, r.m_lim)
+    E_avail = st.E_b - E_sync_b
+    pb_hi = jnp.minimum(pb_hi, _pb_of_pbi(vp, E_avail / dt))
+    pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - vp.E_b_max) / dt))
+    P_b = jnp.clip(P_b, jnp.minimum(pb_lo, pb_hi), pb_hi)
+    P_m = _pm_of_pb(vp, r, P_b) * (traction > 0)
+    P_b = jnp.where(traction > 0, P_b, 0.0)
+    P_out = jnp.where(r.ce & (traction > 0), jnp.clip(P_dem - P_m, r.e_lo, r.e_hi), 0.0)
+    P_p = P_out + P_m
+    P_brake = jnp.minimum(P_req - P_p, 0.0)
+    P_wheel = P_p + P_brake
+    P_e = r.k * P_out
+    P_f = jnp.where(r.ce & (traction > 0), jnp.maximum(P_e - r.pe0, 0.0) / vp.eta_e, 0.0)
+    idle = (vp.has_motor < 0.5) & ((mode == MO) | (traction <= 0)) & ~st.done
+    P_idle = jnp.where(idle, idle_fuel_power(vp), 0.0)
+
+    # --- vehicle motion
+    short = P_wheel < P_req - 1e-9 * (1.0 + jnp.abs(P_req))
+    v1 = jnp.where(short, _speed_after(vp, v0, F0, P_wheel, dt), v1_tgt)
+    ds = jnp.where(short, 0.5 * (v0 + v1) * dt, ds_tgt)
+    P_wheel = jnp.where(short, (0.5 * vp.mass * (v1**2 - v0**2) + F0 * ds) / dt, P_wheel)
+    P_brake = P_wheel - P_p
+    arrived = has_stop & (d_stop - ds <= 1e-3) & (v1 <= 1e-9) & ~standing
+    dwell = jnp.where(arrived, t_stop, jnp.maximum(st.dwell - dt, 0.0))
+    served = jnp.where(arrived, s_stop, st.served)
+    s1 = jnp.where(arrived, s_stop, s0 + ds)
+    finished = (s1 >= track.length - 1e-3) & (dwell <= 0)
+
+    P_bi = pt.battery_internal(vp, P_b)
+    E_b1 = jnp.clip(st.E_b - P_bi * dt - E_sync_b, 0.0, vp.E_b_max)
+
+    live = ~st.done
+    d = lambda x: jnp.where(live, x * dt, z)  # noqa: E731
+    tot = st.tot
+    tot = Totals(
+        fuel=tot.fuel + d(P_f + P_idle) + jnp.where(live, E_sync_f, 0.0),
+        road=tot.road + jnp.where(live, F0 * ds, 0.0),
+        loss_engine=tot.loss_engine + d(P_f - P_e + P_idle),
+        loss_slip=tot.loss_slip + d(P_e - P_out),
+        loss_motor=tot.loss_motor + d(P_b - P_m),
+        loss_battery=tot.loss_battery + d(vp.beta * P_b * P_b),
+        loss_brake=tot.loss_brake + d(-P_brake),
+        loss_sync=tot.loss_sync + jnp.where(live, E_sync_b + E_sync_f, 0.0),
+        mode_switches=tot.mode_switches + (mode_sw & live),
+        gear_switches=tot.gear_switches + (gear_sw & live),
+        max_shortfall=jnp.where(live & ~standing,
+                                jnp.maximum(tot.max_shortfall, v_ref_here - v0), tot.max_shortfall),
+        trip_time=jnp.where(live & finished, (k + 1) * dt, tot.trip_time),
+    )
+    keep = lambda new, old: jnp.where(live, new, old)  # noqa: E731
+    new = PlantState(
+        s=keep(s1, st.s), v=keep(v1, st.v), E_b=keep(E_b1, st.E_b), mode=keep(mode, st.mode),
+        gear=keep(gear, st.gear), open_left=keep(jnp.maximum(open_left - dt, 0.0), st.open_left),
+        dwell=keep(dwell, st.dwell), served=keep(served, st.served),
+        done=st.done | finished, tot=tot,
+    )
+    tr = Trace(t=k * dt, s=s0, v=v0, E_b=st.E_b, mode=mode, gear=gear, P_d=P_wheel * live,
+               P_e=P_e * live, P_m=P_m * live, P_b=P_b * live, P_f=(P_f + P_idle) * live,
+               P_brake=P_brake * live, lam=lam, v_ref=v_ref_here)
+    return (new, cparams, cstate), tr
+
+
+def _w(vp, gear, v):
+    return vp.gear_ratio[gear] * vp.r_d * v
+
+
+def make_track(route, pred) -> Track:
+    """The plant's `Track` from a `Route` and its Level 3 `Prediction` (one route)."""
+    prof = pred.profile
+    mask = pred.mask
+    v_end = jnp.sum(jnp.where(prof.mask & ~jnp.concatenate([prof.mask[1:], jnp.zeros(1, bool)]),
+                              prof.v, 0.0))
+    ref_s = jnp.concatenate([jnp.where(mask, pred.s, pred.length), pred.length[None]])
+    ref_v = jnp.concatenate([jnp.where(mask, pred.v_ref, v_end), v_end[None]])
+    is_stop = (route.stop > 0) & route.mask
+    pos = jnp.where(is_stop, prof.s, jnp.inf)
+    dur = jnp.where(is_stop, route.stop, 0.0)
+
+    def back(c, x):  # first stop at or after each node, scanning from the end
+        p, d = x
+        c = jnp.where(jnp.isfinite(p), jnp.stack([p, d]), c)
+        return c, c
+
+    init = jnp.array([jnp.inf, 0.0], dtype=prof.s.dtype)
+    _, nxt = jax.lax.scan(back, init, (pos, dur), reverse=True)
+    stop_s = jnp.concatenate([nxt[:, 0], jnp.array([jnp.inf], prof.s.dtype)])
+    stop_t = jnp.concatenate([nxt[:, 1], jnp.zeros(1, prof.s.dtype)])
+    # the end of a route without a final stop: no stop; padding nodes lie beyond the end
+    grid_s = jnp.where(route.mask, prof.s, pred.length + 1.0 + jnp.arange(prof.s.shape[0]))
+    return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=route.grade,
+                 stop_s=stop_s, stop_t=stop_t, length=pred.length)
+
+
+def initial_state(vp: VehicleParams, track: Track, mode, gear, dtype=None) -> PlantState:
+    """Start at the beginning of the route at the reference speed, E_b = soc0 * E_b_max."""
+    f = jnp.zeros((), dtype or jnp.result_type(float))
+    i = jnp.zeros((), jnp.int32)
+    return PlantState(
+        s=f + track.ref_s[0], v=f + track.ref_v[0], E_b=f + vp.soc0 * vp.E_b_max,
+        mode=i + mode, gear=i + gear, open_left=f, dwell=f, served=f - 1.0,
+        done=jnp.array(False),
+        tot=Totals(*([f] * 8), i, i, f, f),
+    )
+
+
+def run_plant(vp: VehicleParams, track: Track, controller: Controller, cparams, cstate,
+              init_mode, init_gear, n_steps: int, dt: float = 1.0) -> PlantResult:
+    """Simulate the closed loop for `n_steps` steps of `dt` seconds (static), or until the end.
+
+    Returns the final state (totals in `final.tot`) and per-step traces (n_steps,). If the route
+    is not finished within n_steps, `final.done` is False (callers report it as a status).
+    """
+    st0 = initial_state(vp, track, init_mode, init_gear)
+    step = lambda c, k: _step(vp, track, controller, dt, c, k)  # noqa: E731
+    (final, _, _), trace = jax.lax.scan(step, (st0, cparams, cstate), jnp.arange(n_steps))
+    return PlantResult(final=final, trace=trace, E_b0=st0.E_b)
+
+
+def energy_balance(res: PlantResult, vp: VehicleParams):
+    """(inputs, outputs) in J: fuel + battery drawn, and road work + kinetic change + losses."""
+    t = res.final.tot
+    e_in = t.fuel + (res.E_b0 - res.final.E_b)
+    v0 = res.trace.v[0]
+    dkin = 0.5 * vp.mass * (res.final.v**2 - v0**2)
+    losses = (t.loss_engine + t.loss_slip + t.loss_motor + t.loss_battery + t.loss_brake
+              + t.loss_sync)
+    return e_in, t.road + dkin + losses
