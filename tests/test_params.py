@@ -1,0 +1,195 @@
+"""Vehicle parameters: loading, unit conversion, validation (errors name field and file)."""
+
+import math
+import re
+import tomllib
+
+import numpy as np
+import pytest
+
+from jaxems.params import (
+    KMH,
+    RPM,
+    VEHICLE_DIR,
+    VehicleError,
+    VehicleParams,
+    load_vehicle,
+    params_from_dict,
+    stack_vehicles,
+    with_overrides,
+)
+
+REF = VEHICLE_DIR / "reference_truck.toml"
+
+
+def _doc():
+    with open(REF, "rb") as fh:
+        return tomllib.load(fh)
+
+
+def _write(tmp_path, doc, name="truck.toml"):
+    """Serialise a (flat, two-level) TOML document of numbers and lists."""
+    lines = []
+    for key, val in doc.items():
+        if not isinstance(val, dict):
+            lines.append(f"{key} = {_toml(val)}")
+    for section, body in doc.items():
+        if isinstance(body, dict):
+            lines.append(f"[{section}]")
+            lines += [f"{k} = {_toml(v)}" for k, v in body.items()]
+    p = tmp_path / name
+    p.write_text("\n".join(lines) + "\n")
+    return p
+
+
+def _toml(v):
+    if isinstance(v, str):
+        return f'"{v}"'
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, list):
+        return "[" + ", ".join(_toml(x) for x in v) + "]"
+    if isinstance(v, float) and math.isnan(v):
+        return "nan"
+    if isinstance(v, float) and math.isinf(v):
+        return "inf" if v > 0 else "-inf"
+    return repr(v)
+
+
+def test_reference_truck_values_in_si():
+    vp = load_vehicle()
+    assert isinstance(vp, VehicleParams)
+    assert float(vp.mass) == 20000.0
+    assert float(vp.we_min) == pytest.approx(600 * 2 * math.pi / 60)
+    assert float(vp.r_d) == pytest.approx(52.2 * RPM)
+    assert float(vp.v_cruise) == pytest.approx(85 / 3.6)
+    assert float(vp.w_pred) == pytest.approx(1100 * RPM)
+    # r_G(G) = 1.29^(12 - G), G = 1..12 (eq. 10)
+    np.testing.assert_allclose(vp.gear_ratio, 1.29 ** (12 - np.arange(1, 13)))
+    assert vp.n_gears == 12
+    np.testing.assert_allclose(vp.te_max_w, np.array([600, 1000, 1400, 1600, 1800, 2300]) * RPM)
+    assert float(vp.E_b0) == pytest.approx(0.5 * 4e6)
+    assert float(vp.has_motor) == 1.0
+    assert float(vp.conventional().has_motor) == 0.0
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in vp)
+
+
+def test_load_by_path_equals_load_by_name(tmp_path):
+    p = _write(tmp_path, _doc())
+    a, b = load_vehicle(p), load_vehicle("reference_truck")
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_allclose(x, y)
+
+
+@pytest.mark.parametrize(
+    "section,key",
+    [("vehicle", "mass_kg"), ("engine", "max_torque_Nm"), ("battery", "capacity_J"),
+     ("driving", "prediction_engine_speed_rpm"), ("gearbox", "gears")],
+)
+def test_missing_value_names_field_and_file(tmp_path, section, key):
+    doc = _doc()
+    del doc[section][key]
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError, match=re.escape(f"{p}: {section}.{key}: missing")):
+        load_vehicle(p)
+
+
+@pytest.mark.parametrize(
+    "section,key,value,why",
+    [
+        ("vehicle", "mass_kg", -1.0, "must be > 0"),
+        ("vehicle", "mass_kg", 0.0, "must be > 0"),
+        ("vehicle", "mass_kg", "heavy", "expected a number"),
+        ("vehicle", "mass_kg", True, "expected a number"),
+        ("vehicle", "mass_kg", float("nan"), "finite"),
+        ("vehicle", "rolling_resistance", -0.001, "must be >= 0"),
+        ("engine", "efficiency", 1.2, r"must be in \(0, 1\]"),
+        ("battery", "initial_fraction", 1.5, r"must be in \[0, 1\]"),
+        ("gearbox", "gears", 2.5, "whole number"),
+        ("engine", "max_torque_Nm", [1200.0], "at least 2"),
+        ("engine", "max_torque_Nm", [1200.0, -5.0, 2500, 2200, 1950, 800], "positive"),
+        ("engine", "min_torque_Nm", [-300.0, 100.0, -1500.0], "<= 0"),
+        ("engine", "max_torque_rpm", [600.0, 500.0, 1400, 1600, 1800, 2300], "increasing"),
+        ("engine", "max_torque_rpm", [600.0, "x", 1400, 1600, 1800, 2300], "numbers only"),
+        ("driving", "cruise_speed_km_h", -85.0, "must be > 0"),
+    ],
+)
+def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
+    doc = _doc()
+    doc[section][key] = value
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError) as e:
+        load_vehicle(p)
+    msg = str(e.value)
+    assert str(p) in msg and f"{section}.{key}" in msg
+    assert re.search(why, msg), msg
+
+
+def test_curve_length_mismatch(tmp_path):
+    doc = _doc()
+    doc["engine"]["max_torque_Nm"] = doc["engine"]["max_torque_Nm"][:-1]
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError, match="same length"):
+        load_vehicle(p)
+
+
+def test_speed_range_order(tmp_path):
+    doc = _doc()
+    doc["engine"]["speed_max_rpm"] = 500.0
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError, match="speed_max_rpm must exceed"):
+        load_vehicle(p)
+
+
+def test_unknown_section_and_field(tmp_path):
+    doc = _doc()
+    doc["turbo"] = {"boost": 1.0}
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError, match=r"unknown section \[turbo\]"):
+        load_vehicle(p)
+    doc = _doc()
+    doc["vehicle"]["mass_t"] = 20.0
+    p = _write(tmp_path, doc, "b.toml")
+    with pytest.raises(VehicleError, match=re.escape(f"{p}: unknown field vehicle.mass_t")):
+        load_vehicle(p)
+
+
+def test_not_toml_and_no_such_vehicle(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text("[vehicle\nmass_kg = 1\n")
+    with pytest.raises(VehicleError, match="not valid TOML"):
+        load_vehicle(p)
+    with pytest.raises(VehicleError, match="no such vehicle file.*reference_truck"):
+        load_vehicle("no_such_truck")
+
+
+def test_params_from_dict_source_in_message():
+    doc = _doc()
+    doc["motor"]["efficiency"] = 0.0
+    with pytest.raises(VehicleError, match=r"mine: motor.efficiency: must be in \(0, 1\]"):
+        params_from_dict(doc, "mine")
+
+
+def test_overrides_and_replace():
+    vp = load_vehicle()
+    v2 = with_overrides(vp, mass_kg=25000.0, battery_MJ=8.0)
+    assert float(v2.mass) == 25000.0 and float(v2.E_b_max) == 8e6
+    assert float(vp.mass) == 20000.0  # unchanged
+    for bad in (-1.0, 0.0, float("nan"), float("inf")):
+        with pytest.raises(VehicleError, match="mass_kg"):
+            with_overrides(vp, mass_kg=bad)
+        with pytest.raises(VehicleError, match="battery_MJ"):
+            with_overrides(vp, battery_MJ=bad)
+    with pytest.raises(VehicleError, match="unknown vehicle field"):
+        vp.replace(weight=1.0)
+    assert float(vp.replace(v_cruise=25 * KMH).v_cruise) == pytest.approx(25 / 3.6)
+
+
+def test_stack_vehicles():
+    vp = load_vehicle()
+    batch = stack_vehicles([vp, vp.replace(mass=30000.0), vp.replace(mass=40000.0)])
+    assert batch.mass.shape == (3,)
+    assert batch.gear_ratio.shape == (3, 12)
+    np.testing.assert_allclose(batch.mass, [20000, 30000, 40000])
+    with pytest.raises(VehicleError, match="empty"):
+        stack_vehicles([])
