@@ -261,3 +261,11 @@ def stack_vehicles(vehicles: list[VehicleParams]) -> VehicleParams:
     if not vehicles:
         raise VehicleError("stack_vehicles: empty list")
     return VehicleParams(*(np.stack(leaves) for leaves in zip(*vehicles, strict=True)))
+
+
+def vehicle_axes(vp: VehicleParams, batched: list[str] | tuple[str, ...]) -> VehicleParams:
+    """`in_axes` for `jax.vmap` over a vehicle whose `batched` fields carry a leading axis."""
+    bad = set(batched) - set(VehicleParams._fields)
+    if bad:
+        raise VehicleError(f"unknown vehicle field(s): {', '.join(sorted(bad))}")
+    return VehicleParams(*(0 if f in batched else None for f in VehicleParams._fields))

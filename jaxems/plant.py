@@ -394,9 +394,9 @@ def make_track(route, pred) -> Track:
                               prof.v, 0.0))
     ref_s = jnp.concatenate([jnp.where(mask, pred.s, pred.length), pred.length[None]])
     ref_v = jnp.concatenate([jnp.where(mask, pred.v_ref, v_end), v_end[None]])
-    is_stop = (route.stop > 0) & route.mask
+    is_stop = (jnp.asarray(route.stop) > 0) & jnp.asarray(route.mask)
     pos = jnp.where(is_stop, prof.s, jnp.inf)
-    dur = jnp.where(is_stop, route.stop, 0.0)
+    dur = jnp.where(is_stop, jnp.asarray(route.stop), 0.0)
 
     def back(c, x):  # first stop at or after each node, scanning from the end
         p, d = x
@@ -408,8 +408,8 @@ def make_track(route, pred) -> Track:
     stop_s = jnp.concatenate([nxt[:, 0], jnp.array([jnp.inf], prof.s.dtype)])
     stop_t = jnp.concatenate([nxt[:, 1], jnp.zeros(1, prof.s.dtype)])
     # the end of a route without a final stop: no stop; padding nodes lie beyond the end
-    grid_s = jnp.where(route.mask, prof.s, pred.length + 1.0 + jnp.arange(prof.s.shape[0]))
-    return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=route.grade,
+    grid_s = jnp.where(jnp.asarray(route.mask), prof.s, pred.length + 1.0 + jnp.arange(prof.s.shape[0]))
+    return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
                  stop_s=stop_s, stop_t=stop_t, length=pred.length)
 
 

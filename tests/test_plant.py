@@ -1,0 +1,154 @@
+"""Plant: energy balance, stops, battery limits, open driveline, vmap == loop."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxems import plant as P
+from jaxems.levels import powersplit as ps
+from jaxems.levels.velocity import predict_velocity
+from jaxems.params import load_vehicle, vehicle_axes
+from jaxems.route import Row, route_from_rows
+
+ROWS = [
+    Row(0, 0, 0.0, 5), Row(0.001, 40, 0.0, 0), Row(300, 40, 5.0, 0), Row(500, 40, 0.0, 0),
+    Row(600, 40, -6.0, 0), Row(700, 40, 0.0, 0), Row(800, 0, 0.0, 10), Row(800.001, 50, 1.0, 0),
+    Row(1200, 0, 1.0, 2),
+]
+ROUTE = route_from_rows([r._replace(line=i + 2) for i, r in enumerate(ROWS)], ds=10.0,
+                        bucket=64)
+VP = load_vehicle()
+PRED = predict_velocity(ROUTE, VP, n_steps=256)
+N_PLANT = 320
+
+
+def greedy(lam, cstate, vp, obs):
+    """The Hamiltonian minimum without switching costs, at the observed demand."""
+    tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
+    H = tab.H.reshape(-1)
+    n = vp.gear_ratio.shape[0]
+    i = jnp.argmin(H)
+    i = jnp.where(jnp.isfinite(H[i]), i, obs.mode * n + obs.gear)
+    return cstate, P.Command(mode=i // n, gear=i % n, lam=lam, P_b=jnp.nan)
+
+
+@jax.jit
+def run(vp, lam):
+    track = P.make_track(ROUTE, PRED)
+    return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
+
+
+def rel_balance(res, vp):
+    e_in, e_out = P.energy_balance(res, vp)
+    return float(abs(e_in - e_out) / abs(e_in))
+
+
+@settings(max_examples=12)
+@given(
+    mass=st.floats(12e3, 40e3),
+    lam=st.floats(-3.5, -1.2),
+    battery=st.floats(0.3e6, 6e6),
+    hybrid=st.booleans(),
+)
+def test_energy_balance_closes(mass, lam, battery, hybrid):
+    vp = VP.replace(mass=mass, E_b_max=battery)
+    if not hybrid:
+        vp = vp.conventional()
+    res = run(vp, lam)
+    assert bool(res.final.done)
+    assert rel_balance(res, vp) < 1e-3
+    # each loss is a loss
+    t = res.final.tot
+    for name in ("loss_engine", "loss_slip", "loss_motor", "loss_battery", "loss_brake",
+                 "loss_sync"):
+        assert float(getattr(t, name)) >= -1e-6 * float(t.fuel), name
+    # battery within its limits throughout
+    E = np.asarray(res.trace.E_b)
+    assert E.min() >= -1e-6 and E.max() <= battery * (1 + 1e-9)
+    assert 0 <= float(res.final.E_b) <= battery * (1 + 1e-9)
+
+
+def test_stops_are_served_for_their_duration():
+    res = run(VP, -2.2)
+    s = np.asarray(res.trace.s)
+    v = np.asarray(res.trace.v)
+    assert bool(res.final.done)
+    L = float(ROUTE.length)
+    for pos, dur in ((0.0, 5), (800.0, 10)):
+        at = (np.abs(s - pos) < 1e-3) & (v == 0)
+        assert at.sum() >= dur, (pos, at.sum())
+    assert abs(float(res.final.s) - L) < 1e-3
+    assert float(res.final.v) == 0.0  # the route ends with a stop
+    # never beyond the route, never backwards
+    assert np.all(np.diff(s) >= -1e-9) and s.max() <= L + 1e-6
+
+
+def test_trip_time_close_to_level3():
+    res = run(VP, -2.2)
+    # the greedy controller switches often (each switch opens the driveline for 1 s)
+    assert float(res.final.tot.trip_time) >= float(PRED.trip_time) - 1
+    assert float(res.final.tot.trip_time) < 1.5 * float(PRED.trip_time)
+
+
+def test_open_driveline_during_switches():
+    res = run(VP, -2.2)
+    tr = res.trace
+    mode = np.asarray(tr.mode)
+    switched = np.flatnonzero(np.diff(mode) != 0) + 1
+    assert switched.size > 0
+    # a step in which the mode changed has no traction: no engine or motor power
+    assert np.allclose(np.asarray(tr.P_e)[switched], 0.0)
+    assert np.allclose(np.asarray(tr.P_m)[switched], 0.0)
+
+
+def test_battery_limits_enforced_small_battery():
+    vp = VP.replace(E_b_max=0.15e6)
+    for lam in (-1.0, -4.5):  # cheap battery: drains; expensive battery: fills by recuperation
+        res = run(vp, lam)
+        E = np.asarray(res.trace.E_b)
+        assert E.min() >= -1e-6 and E.max() <= 0.15e6 * (1 + 1e-9)
+        assert rel_balance(res, vp) < 1e-3
+
+
+def test_conventional_idles_and_never_uses_the_motor():
+    vp = VP.conventional()
+    res = run(vp, -2.2)
+    tr = res.trace
+    assert np.allclose(np.asarray(tr.P_m), 0.0) and np.allclose(np.asarray(tr.P_b), 0.0)
+    assert set(np.unique(np.asarray(tr.mode))) <= {ps.ME, ps.MO}
+    v = np.asarray(tr.v)
+    standing = (v[:-1] == 0) & (v[1:] == 0) & (np.asarray(tr.t)[:-1] < float(res.final.tot.trip_time))
+    assert standing.sum() >= 15
+    idle = float(P.idle_fuel_power(vp))
+    assert np.allclose(np.asarray(tr.P_f)[:-1][standing], idle)
+
+
+def test_vmap_equals_loop():
+    masses = np.array([15e3, 25e3, 38e3])
+    lams = np.array([-1.8, -2.2, -2.9])
+    vps = VP._replace(mass=masses)
+    batched = jax.vmap(run, in_axes=(vehicle_axes(VP, ["mass"]), 0))(vps, lams)
+    for b in range(3):
+        one = run(VP.replace(mass=masses[b]), lams[b])
+        np.testing.assert_allclose(np.asarray(batched.final.tot.fuel[b]),
+                                   np.asarray(one.final.tot.fuel), rtol=1e-10)
+        np.testing.assert_allclose(np.asarray(batched.trace.E_b[b]), np.asarray(one.trace.E_b),
+                                   rtol=1e-10, atol=1e-6)
+
+
+def test_unfinished_route_is_reported():
+    track = P.make_track(ROUTE, PRED)
+    res = jax.jit(lambda vp: P.run_plant(vp, track, greedy, -2.2, jnp.zeros(()), ps.MO, 0, 40))(
+        VP)
+    assert not bool(res.final.done)
+    assert float(res.final.tot.trip_time) == 0.0
+
+
+@pytest.mark.parametrize("v", [0.0, 3.0, 15.0])
+def test_rotational_energy_matches_inertias(v):
+    e = float(P.rotational_energy(VP, ps.MC, 5, v))
+    w = float(VP.gear_ratio[5] * VP.r_d * v)
+    assert e == pytest.approx(0.5 * (float(VP.I_e) + float(VP.I_m)) * w * w)
