@@ -257,3 +257,25 @@ def table_a1(vp: VehicleParams, lam=-2.2, w_conn_rpm=930.0, w_down_rpm=1200.0):
                  ("Mc", "Mm")):
         out[f"{a}->{b}"] = (cost(a, b, w0, w0, 0.0), cost(a, b, w0, w0, 1.0))
     return out
+
+
+def table_a2(vp: VehicleParams, slopes_pct=(0.0, 6.0, 12.0), speed_mps=25 / 3.6, tau_s=1.0,
+             params: SwitchCostParams | None = None, mode: int = 1):
+    """Traction-interruption rows of Table A2: list of dicts per slope.
+
+    Each row: slope_pct, speed_loss_mps (v_0 - v_1), time_loss_s (-dt_t), cost_kJ, F0_N (road
+    load), F_max_N (the largest driveline force of ``mode`` over all gears at that speed: the
+    recovery force), saturated. Default mode 1 = engine-only (the paper's uphill mode).
+    """
+    params = SwitchCostParams() if params is None else params
+    F_max = float(jnp.max(max_driveline_force(vp, speed_mps, params.v_min)[mode]))
+    rows = []
+    for slope in slopes_pct:
+        F0 = float(pt.road_load(vp, speed_mps, slope / 100.0))
+        r = traction_loss(vp, F0, speed_mps, tau_s, F_max, params)
+        rows.append({
+            "slope_pct": float(slope), "speed_loss_mps": float(r.speed_loss_mps),
+            "time_loss_s": float(r.time_loss_s), "cost_kJ": float(r.cost) / 1e3,
+            "F0_N": F0, "F_max_N": F_max, "saturated": bool(r.saturated),
+        })
+    return rows

@@ -172,3 +172,136 @@ def optimal_mode_gear(split: Split):
     i = jnp.argmin(flat, axis=-1)
     n_g = split.H.shape[-1]
     return jnp.min(flat, axis=-1), i // n_g, i % n_g
+
+
+# ------------------------------------------------------------------- guards (eqs. 37-41)
+class Guards(NamedTuple):
+    """The guards of Figure 9 at gearbox speed w: B1, B2 are lambda_b values, B3, B4, B5 are
+    P_d values (W) at the given lambda_b. Shapes broadcast from (w, lam)."""
+
+    B1: jax.Array
+    B2: jax.Array
+    B3: jax.Array
+    B4: jax.Array
+    B5: jax.Array
+
+
+def explicit_hamiltonians(vp: VehicleParams, P_d, w, lam):
+    """Table 6 in closed form, limits ignored: (H_c, H_e, H_m, P_b_c) at gearbox speed w.
+
+    H_c, H_e, H_m: the minimised Hamiltonians of combined, engine-only and motor-only (W), with
+    the engine delivering more than its friction (fuel active), the motor discharging in M_m
+    (P_d > P_m0) and no power limit active; P_b_c: the optimal battery power of M_c (Table 6:
+    discharge branch for lambda_b > -eta_m/eta_e, charge branch for lambda_b <
+    -1/(eta_e eta_m), zero in between). Valid where `interior_region` holds.
+    """
+    eta, eta_m, beta = vp.eta_e, vp.eta_m, vp.beta
+    pm0 = pt.motor_friction(vp, w)
+    pe0 = pt.engine_friction(vp, w)
+    H_e = (P_d - pe0) / eta
+    p_dis = -(lam + eta_m / eta) / (2 * beta * lam)
+    p_chg = -(lam + 1 / (eta * eta_m)) / (2 * beta * lam)
+    P_b_c = jnp.where(p_dis > 0, p_dis, jnp.where(p_chg < 0, p_chg, 0.0))
+    P_m_c = pm0 + jnp.where(P_b_c > 0, eta_m * P_b_c, P_b_c / eta_m)
+    H_c = (P_d - P_m_c - pe0) / eta - lam * (P_b_c + beta * P_b_c**2)
+    p_m = (P_d - pm0) / eta_m
+    H_m = -lam * (p_m + beta * p_m**2)
+    return H_c, H_e, H_m, P_b_c
+
+
+def guards(vp: VehicleParams, w, lam) -> Guards:
+    """Guards B1..B5 of the optimal mode map (eqs. 37-41, derived again) at gearbox speed w.
+
+    Notation: eta = eta_e, eta_m, beta; P_m0 = P_m0(w) <= 0 and P_e0 = P_e0(w) <= 0 the motor
+    and engine friction at w; lambda = lambda_b < 0; P_b > 0 discharges. In the region where
+    the engine delivers more than its friction (fuel active) and no power limit is active,
+    Table 6 and eqs. 1, 4, 7 give (see `explicit_hamiltonians`)
+
+        H_e = (P_d - P_e0) / eta                                       (P_b = 0)
+        H_c = H_e - P_m0 / eta + c^2 / (4 beta lambda),   c = lambda + eta_m / eta
+              (discharge, P_b = P_dis = -c / (2 beta lambda) > 0, i.e. lambda > -eta_m / eta)
+        H_c = H_e - P_m0 / eta + d^2 / (4 beta lambda),   d = lambda + 1 / (eta eta_m)
+              (charge, P_b = P_chg = -d / (2 beta lambda) <= 0, lambda <= -1 / (eta eta_m))
+        H_c = H_e - P_m0 / eta                             (P_b = 0 in between: M_c loses)
+        H_m = -lambda (p + beta p^2),   p = (P_d - P_m0) / eta_m > 0
+
+    B1, B2 (M_c = M_e, independent of P_d): c^2 = 4 beta lambda P_m0 / eta, resp. with d,
+    a quadratic in lambda whose root inside the discharge (charge) region is
+
+        B1 = (-eta_m + 2 beta P_m0 + 2 sqrt(beta P_m0 (beta P_m0 - eta_m))) / eta
+        B2 = -1/(eta eta_m) + 2 beta P_m0 / eta - (2/eta) sqrt(beta P_m0 (beta P_m0 - 1/eta_m))
+
+    B1 is eq. 37 as printed. Eq. 38 as printed divides its square-root term by eta eta_m;
+    the derivation gives eta sqrt(eta_m) (the form above), and the property tests (equal
+    Hamiltonians at the guard) confirm it. M_c wins for lambda > B1 and
+    lambda < B2, M_e for B2 < lambda < B1. With P_m0 = 0 they collapse to -eta_m/eta and
+    -1/(eta eta_m).
+
+    B3, B4, B5 (M_m against M_c or M_e, functions of P_d): in terms of p, H_m - H_other is a
+    convex quadratic; M_m wins between its roots and the upper root is the guard (the lower
+    root lies where the engine would run below its friction, outside the region):
+
+        M_m = M_c (discharge), lambda > B1:   (p - P_dis)^2 = P_e0 / (eta beta lambda)
+            B3: P_d = P_m0 + eta_m (P_dis + sqrt(P_e0 / (eta beta lambda)))            (eq. 39)
+        M_m = M_e, B2 < lambda < B1:   beta lambda p^2 + c p + (P_m0 - P_e0) / eta = 0
+            B4: P_d = P_m0 + eta_m (-c - sqrt(c^2 - 4 beta lambda (P_m0 - P_e0) / eta))
+                                   / (2 beta lambda)                                   (eq. 40)
+        M_m = M_c (charge), lambda < B2:
+            beta lambda p^2 + c p - P_e0 / eta + d^2 / (4 beta lambda) = 0
+            B5: P_d = P_m0 + eta_m (-c - sqrt(c^2 - d^2 + 4 beta lambda P_e0 / eta))
+                                   / (2 beta lambda)                                   (eq. 41)
+
+    These are eqs. 39-41 with the lost symbols restored: P_0 = P_e0 (engine friction) and
+    lambda_1 = lambda_b. M_m wins for P_d below the guard of the lambda_b region. Each guard
+    is returned for every lambda (NaN where its square root is negative); `closed_form_mode`
+    picks the one that applies. w: () or array (rad/s); lam: () or array.
+    """
+    eta, eta_m, beta = vp.eta_e, vp.eta_m, vp.beta
+    pm0 = pt.motor_friction(vp, w)
+    pe0 = pt.engine_friction(vp, w)
+    bp = beta * pm0
+    B1 = (-eta_m + 2 * bp + 2 * jnp.sqrt(bp * (bp - eta_m))) / eta
+    B2 = -1 / (eta * eta_m) + 2 * bp / eta - (2 / eta) * jnp.sqrt(bp * (bp - 1 / eta_m))
+    c = lam + eta_m / eta
+    d = lam + 1 / (eta * eta_m)
+    bl = beta * lam
+    p_dis = -c / (2 * bl)
+    B3 = pm0 + eta_m * (p_dis + jnp.sqrt(pe0 / (eta * bl)))
+    B4 = pm0 + eta_m * (-c - jnp.sqrt(c * c - 4 * bl * (pm0 - pe0) / eta)) / (2 * bl)
+    B5 = pm0 + eta_m * (-c - jnp.sqrt(c * c - d * d + 4 * bl * pe0 / eta)) / (2 * bl)
+    return Guards(B1=B1, B2=B2, B3=B3, B4=B4, B5=B5)
+
+
+def closed_form_mode(vp: VehicleParams, P_d, w, lam):
+    """Optimal mode index (MC, ME or MM) from the guards alone, at gearbox speed w.
+
+    M_c if lambda_b > B1 or lambda_b < B2, else M_e; M_m instead when P_d is below the P_d
+    guard of that lambda_b region (B3, B4 or B5). Exact only inside `interior_region`: the
+    engine above its friction, the motor discharging in M_m, no component or speed limit
+    active, P_d > 0 (the open mode is then infeasible). Outside it, use `mode_gear_split`.
+    """
+    g = guards(vp, w, lam)
+    ce_best = jnp.where((lam > g.B1) | (lam < g.B2), MC, ME)
+    pd_guard = jnp.where(lam > g.B1, g.B3, jnp.where(lam < g.B2, g.B5, g.B4))
+    return jnp.where(P_d < pd_guard, MM, ce_best)
+
+
+def interior_region(vp: VehicleParams, P_d, w, lam):
+    """Where `closed_form_mode` and `explicit_hamiltonians` are exact (bool).
+
+    P_d > 0, lambda_b < 0; w inside the engine's connected speed range and below the motor's
+    top speed; in M_c the Table 6 optimum keeps the motor within its power limit and the
+    engine strictly above its friction and within its full-load power; in M_e the engine
+    likewise; in M_m the motor can deliver P_d.
+    """
+    _, _, _, P_b_c = explicit_hamiltonians(vp, P_d, w, lam)
+    pm0 = pt.motor_friction(vp, w)
+    pe0 = pt.engine_friction(vp, w)
+    _, pe_max = pt.engine_power_limits(vp, w)
+    m_lim = pt.motor_power_limit(vp, w)
+    P_m_c = pm0 + jnp.where(P_b_c > 0, vp.eta_m * P_b_c, P_b_c / vp.eta_m)
+    P_e_c = P_d - P_m_c
+    ok = (P_d > 0) & (lam < 0) & (w >= vp.we_min) & (w <= vp.we_max) & (w <= vp.wm_max)
+    ok &= (jnp.abs(P_m_c) <= m_lim) & (P_e_c > pe0) & (P_e_c <= pe_max)
+    ok &= (P_d > pe0) & (P_d <= pe_max) & (P_d <= m_lim) & (vp.has_motor > 0.5)
+    return ok

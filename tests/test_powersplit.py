@@ -1,0 +1,140 @@
+"""Level 1 split kernel: P_b* of every (mode, gear) against a brute-force search over a fine
+P_b grid within the limits (plain NumPy model), and the explicit Table 6 solution."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxems.levels import powersplit as ps
+from jaxems.params import RPM, load_vehicle
+
+VP = load_vehicle()
+CONV = VP.conventional()
+split_j = jax.jit(ps.mode_gear_split)
+N_GRID = 100_001
+
+
+def ref_split(vp, P_d, v, lam, n=N_GRID):
+    """Brute force: for every (mode, gear) the minimum of H over a P_b grid spanning exactly
+    the feasible interval (plain NumPy, written from the paper's eqs. 1-7, 10-12)."""
+    f = {k: np.asarray(x, dtype=np.float64) for k, x in vp._asdict().items()}
+    n_g = f["gear_ratio"].shape[0]
+    H = np.full((4, n_g), np.inf)
+    Pb = np.zeros((4, n_g))
+    spacing = np.zeros((4, n_g))
+    for g in range(n_g):
+        w = f["gear_ratio"][g] * f["r_d"] * v
+        for mode, (ce, cm) in enumerate(zip(ps.ENGINE_CONNECTED, ps.MOTOR_CONNECTED,
+                                            strict=True)):
+            if cm and f["has_motor"] < 0.5:
+                continue
+            we, k = w, 1.0
+            if ce and g == 0 and w < f["we_min"]:  # launch: slipping clutch at idle speed
+                we, k = f["we_min"], f["we_min"] / w if w > 0 else 0.0
+            if ce and not (f["we_min"] * (1 - 1e-9) <= we <= f["we_max"] and w > 0):
+                continue
+            if cm and w > f["wm_max"]:
+                continue
+            if ce:
+                pe_hi = np.interp(we, f["te_max_w"], f["te_max"]) * we / k
+                pe_lo = np.interp(we, f["te_min_w"], f["te_min"]) * we / k
+                pe0 = -(f["e0_lin"] * we + f["e0_quad"] * we * we)
+            else:
+                pe_hi = pe_lo = pe0 = 0.0
+            m_lim = min(f["tm_max"] * w, f["pm_max"]) if cm else 0.0
+            pm0 = -(f["m0_lin"] * w + f["m0_quad"] * w * w) if cm else 0.0
+
+            def pb_of(P_m, pm0=pm0):
+                d = P_m - pm0
+                return d / f["eta_m"] if d > 0 else d * f["eta_m"]
+
+            pm_lo = max(-m_lim, P_d - pe_hi)  # the engine (or nothing) covers the rest
+            if pm_lo > m_lim:
+                continue
+            if cm:
+                grid = np.linspace(pb_of(pm_lo), pb_of(m_lim), n)
+                P_m = pm0 + np.where(grid > 0, f["eta_m"] * grid, grid / f["eta_m"])
+            else:
+                grid = np.zeros(1)
+                P_m = np.zeros(1)
+            out = np.clip(P_d - P_m, pe_lo, pe_hi)  # brakes take what the engine cannot
+            fuel = np.maximum(k * out - pe0, 0.0) / f["eta_e"] if ce else 0.0
+            Hg = fuel - lam * (grid + f["beta"] * grid * grid)
+            i = int(np.argmin(Hg))
+            H[mode, g], Pb[mode, g] = Hg[i], grid[i]
+            spacing[mode, g] = grid[1] - grid[0] if grid.size > 1 else 0.0
+    return H, Pb, spacing
+
+
+def _check(vp, P_d, v, lam):
+    s = split_j(vp, P_d, v, lam)
+    H, Pb = np.asarray(s.H), np.asarray(s.P_b)
+    Hr, Pbr, sp = ref_split(vp, P_d, v, lam)
+    assert np.array_equal(np.isfinite(H), np.isfinite(Hr)), (np.isfinite(H), np.isfinite(Hr))
+    f = np.isfinite(H)
+    # exact minimum: never above a grid point, and within the grid's resolution of it
+    assert np.all(H[f] <= Hr[f] + 1e-9 * np.abs(Hr[f]) + 1e-6)
+    assert np.all(Hr[f] - H[f] <= 4.0 * sp[f] + 1e-6 * np.abs(H[f]) + 1e-3)
+    # H is strictly convex in P_b (lambda_b < 0): the grid argmin is next to the true one
+    assert np.all(np.abs(Pb[f] - Pbr[f]) <= 3.0 * sp[f] + 1.0)
+    # consistency of the returned powers: P_e + P_m + P_brake = P_d where feasible
+    tot = np.asarray(s.P_e) + np.asarray(s.P_m) + np.asarray(s.P_brake)
+    slip = np.zeros_like(f)
+    slip[:2, 0] = np.asarray(s.w)[:2, 0] < float(vp.we_min)
+    ok = f & ~slip
+    assert np.allclose(tot[ok], P_d, atol=1e-6 * max(1.0, abs(P_d)))
+    assert np.all(np.asarray(s.P_brake) <= 0)
+    assert np.all(np.asarray(s.P_f)[f] >= 0)
+
+
+@settings(max_examples=15)
+@given(P_d=st.floats(-4e5, 5e5), v=st.floats(0.3, 28.0), lam=st.floats(-3.0, -1.2))
+def test_split_matches_brute_force(P_d, v, lam):
+    _check(VP, P_d, v, lam)
+
+
+@settings(max_examples=5)
+@given(P_d=st.floats(-2e5, 3e5), v=st.floats(0.3, 28.0), lam=st.floats(-3.0, -1.2))
+def test_conventional_split_matches_brute_force(P_d, v, lam):
+    _check(CONV, P_d, v, lam)
+
+
+def test_split_special_points():
+    """Launch slip, standstill, hard braking, demand beyond every limit."""
+    for P_d, v, lam in [(50e3, 0.5, -2.0), (0.0, 0.0, -2.0), (-5e5, 15.0, -2.2),
+                        (2e6, 15.0, -2.0), (11e3, 25 / 3.6, -1.97), (113e3, 25 / 3.6, -1.97)]:
+        _check(VP, P_d, v, lam)
+    s = split_j(VP, 2e6, 15.0, -2.0)
+    assert not np.any(np.asarray(s.feasible))
+    assert np.all(np.isinf(np.asarray(s.H)))
+
+
+@settings(max_examples=20)
+@given(P_d=st.floats(2e4, 2e5), rpm=st.floats(700, 2200), lam=st.floats(-2.8, -1.5))
+def test_table6_explicit_solution(P_d, rpm, lam):
+    """In the interior region the kernel equals the closed form of Table 6."""
+    w = rpm * RPM
+    v = w / float(VP.gear_ratio[5] * VP.r_d)
+    s = split_j(VP, P_d, v, lam)
+    Hc, He, Hm, Pbc = ps.explicit_hamiltonians(VP, P_d, w, lam)
+    if not bool(ps.interior_region(VP, P_d, w, lam)):
+        return
+    H = np.asarray(s.H)[:, 5]
+    np.testing.assert_allclose(H[:3], [Hc, He, Hm], rtol=1e-10)
+    np.testing.assert_allclose(float(s.P_b[ps.MC, 5]), float(Pbc), rtol=1e-9, atol=1e-6)
+
+
+def test_optimal_mode_gear_is_the_table_minimum():
+    P_d = jnp.array([11e3, 113e3, -192e3, 215e3, -90e3])
+    v = jnp.full(5, 25 / 3.6)
+    tab = jax.jit(ps.hamiltonian_table)(VP, P_d, v, -1.97)
+    Hs, m, g = ps.optimal_mode_gear(tab)
+    H = np.asarray(tab.H)
+    for k in range(5):
+        assert float(Hs[k]) == H[k].min()
+        assert H[k, int(m[k]), int(g[k])] == H[k].min()
+    # the paper's narrative: motor-only on the flat at 25 km/h; recuperation on the -6 % slope
+    assert int(m[0]) == ps.MM
+    assert int(m[4]) == ps.MM
