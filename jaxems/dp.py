@@ -139,7 +139,7 @@ def viterbi(
     def step(V, inp):
         c, m, x = inp
         best, arg = transition.relax(V, x)
-        Vn = jnp.where(m[None], best + c, V)
+        Vn = jnp.where(m[None], best + c, V).astype(V.dtype)
         return Vn, jnp.where(m[None], arg.astype(pdt), ident)
 
     V, ptr = jax.lax.scan(step, init_cost, (stage_cost, mask, transition.xs))
@@ -179,7 +179,7 @@ def viterbi_first(
         arg = arg.astype(jnp.int32)
         # at the first unmasked step, the label is the state itself; later, the source's label
         src_lab = jnp.where(first[None], lab0, jnp.take_along_axis(L, arg, axis=0))
-        Vn = jnp.where(m[None], best + c, V)
+        Vn = jnp.where(m[None], best + c, V).astype(V.dtype)
         Ln = jnp.where(m[None], src_lab, L)
         return (Vn, Ln, first & ~m), None
 

@@ -207,8 +207,7 @@ def switch_cost_matrix(vp: VehicleParams, v, grade, lam, params: SwitchCostParam
     dm = mode[:, None] != mode[None]
     dg = gear[:, None] != gear[None]
     t = jnp.where(dm & dg, trac[2][None], jnp.where(dm, trac[0][None], trac[1][None]))
-    t = jnp.where(dm | dg, t, 0.0)
-    return params.weight * (sync + t)
+    return jnp.where(dm | dg, params.weight * (sync + t), 0.0)
 
 
 def eps_M(vp: VehicleParams, v, grade, lam, gear, params: SwitchCostParams):

@@ -107,8 +107,9 @@ class TransitionConsts(NamedTuple):
 def transition_consts(vp: VehicleParams, averaged) -> TransitionConsts:
     """Coefficients of the structured relaxation for one vehicle (see the module docstring)."""
     u_e, d_e, u_m, d_m = sw.sync_weights(vp, averaged)
-    xe = jnp.asarray(ENGINE_CONNECTED, float)
-    xm = jnp.asarray(MOTOR_CONNECTED, float)
+    dtype = jnp.result_type(u_e, float)
+    xe = jnp.asarray(ENGINE_CONNECTED, dtype)
+    xm = jnp.asarray(MOTOR_CONNECTED, dtype)
 
     def comp(x, u, d):
         x0, x1 = x[:, None], x[None, :]  # source M, target M'
@@ -157,7 +158,7 @@ def relax_structured(V, x: TransitionInputs, k: TransitionConsts):
     S = V.shape[0]
     b = V.shape[1:]
     G = S // N_MODES
-    nb = (None,) * len(b)
+    nb = (1,) * len(b)
     Vm = V.reshape((N_MODES, G) + b)
     s = x.scale
     trac = x.trac.reshape((3, N_MODES, G) + b)
@@ -207,8 +208,9 @@ def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.S
     n_g = vp.gear_ratio.shape[-1]
     m0, g0 = s_from // n_g, s_from % n_g
     m1, g1 = s_to // n_g, s_to % n_g
-    ce = jnp.asarray(ENGINE_CONNECTED, float)
-    cm = jnp.asarray(MOTOR_CONNECTED, float)
+    dtype = jnp.result_type(v, vp.I_e, float)
+    ce = jnp.asarray(ENGINE_CONNECTED, dtype)
+    cm = jnp.asarray(MOTOR_CONNECTED, dtype)
     w = vp.gear_ratio * vp.r_d * v
     E = sw.sync_energy(vp, ce[m0], cm[m0], w[g0], ce[m1], cm[m1], w[g1], params.averaged)
     trac = sw.traction_cost_table(vp, v, grade, params)  # (3, S)

@@ -1,0 +1,198 @@
+"""Level 1 with switching costs: structured relaxation against the dense matrix, the DP against
+a plain NumPy Viterbi loop, MPC against the full horizon, batching and recompilation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxems import dp, stack_vehicles
+from jaxems import powertrain as pt
+from jaxems import switching as sw
+from jaxems.levels import level1 as l1
+from jaxems.levels import powersplit as ps
+from jaxems.params import load_vehicle
+
+VP = load_vehicle()
+PRM = sw.SwitchCostParams()
+T = 24
+DT = 1.0
+
+
+def synthetic_route(T=T, seed=0):
+    """Launch, flat, a climb, a steep descent: P_d (W), v (m/s), grade; lambda_b (T,)."""
+    rng = np.random.default_rng(seed)
+    v = np.full(T, 25 / 3.6) + rng.uniform(-0.3, 0.3, T)
+    v[:4] = [0.5, 2.0, 4.0, 6.0]
+    grade = np.zeros(T)
+    grade[8:13] = 0.06
+    grade[15:19] = -0.12
+    grade[19:21] = 0.12
+    vp25 = VP.replace(mass=25000.0)
+    acc = np.gradient(v) / DT
+    P_d = np.asarray((pt.road_load(vp25, v, grade) + 25000.0 * acc) * v)
+    lam = np.where(np.arange(T) < T // 2, -1.97, -2.1)
+    return vp25, P_d, v, grade, lam
+
+
+# ------------------------------------------------------------------- structured relaxation
+@jax.jit
+def _relax_both(V, v, grade, lam, prm):
+    x = l1.transition_inputs(VP, v, grade, lam, prm)
+    k = l1.transition_consts(VP, prm.averaged)
+    C = sw.switch_cost_matrix(VP, v, grade, lam, prm)
+    return l1.relax_structured(V, x, k), dp.relax_dense(V, C), C
+
+
+@settings(max_examples=25)
+@given(v=st.floats(0.0, 30.0), grade=st.floats(-0.15, 0.15), lam=st.floats(-3.0, -1.0),
+       averaged=st.sampled_from([0.0, 0.3, 1.0]), weight=st.sampled_from([0.0, 1.0, 2.5]),
+       seed=st.integers(0, 2**31 - 1))
+def test_structured_relaxation_equals_dense(v, grade, lam, averaged, weight, seed):
+    rng = np.random.default_rng(seed)
+    V = rng.normal(0, 2e4, 48)
+    V[rng.random(48) < 0.3] = np.inf
+    prm = sw.SwitchCostParams(averaged=averaged, weight=weight)
+    (b, a), (bd, _), C = _relax_both(V, v, grade, lam, prm)
+    b, a, bd, C = map(np.asarray, (b, a, bd, C))
+    fin = np.isfinite(bd)
+    assert np.array_equal(np.isfinite(b), fin)
+    np.testing.assert_allclose(b[fin], bd[fin], rtol=1e-12, atol=1e-6)
+    a = a.astype(int)
+    np.testing.assert_allclose((V[a] + C[a, np.arange(48)])[fin], bd[fin], rtol=1e-12, atol=1e-6)
+
+
+# ----------------------------------------------------------------------- full horizon DP
+def numpy_viterbi(stage, Cs, init):
+    """Plain loop: stage (T, S), Cs (T, S, S), init (S,) -> optimal cost."""
+    V = init.copy()
+    for k in range(stage.shape[0]):
+        V = np.min(V[:, None] + Cs[k], axis=0) + stage[k]
+    return V.min()
+
+
+_cost_mats = jax.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None)))
+_htab = jax.jit(ps.hamiltonian_table)
+_tcost = jax.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None)))
+
+
+def _reference_cost(vp, P_d, v, grade, lam, init_state, prm):
+    tab = _htab(vp, P_d, v, lam)
+    H = np.asarray(tab.H).reshape(len(P_d), -1) * DT
+    none = ~np.any(np.isfinite(H), axis=1)
+    H[none] = 0.0
+    Cs = np.asarray(_cost_mats(vp, v, grade, np.broadcast_to(lam, v.shape), prm))
+    init = np.full(48, np.inf)
+    init[init_state] = 0.0
+    return numpy_viterbi(H, Cs, init)
+
+
+def _check_result(r, vp, v, grade, lam, prm, init_state, mask=None):
+    mask = np.ones(len(v), bool) if mask is None else mask
+    state = np.asarray(r.state)
+    prev = np.concatenate([[init_state], state[:-1]])
+    sc = np.asarray(_tcost(vp, prev, state, v, grade, np.broadcast_to(lam, v.shape), prm))
+    np.testing.assert_allclose(np.asarray(r.switch_cost), np.where(mask, sc, 0.0), rtol=1e-9,
+                               atol=1e-6)
+    H = np.asarray(r.H)
+    H = np.where(np.isfinite(H), H, 0.0)
+    np.testing.assert_allclose(float(r.cost), np.sum(H * DT) + np.sum(r.switch_cost), rtol=1e-10)
+    n_g = VP.n_gears
+    assert int(r.n_mode_switches) == int(np.sum(mask & (prev // n_g != state // n_g)))
+    assert int(r.n_gear_switches) == int(np.sum(mask & (prev % n_g != state % n_g)))
+
+
+def test_level1_full_equals_numpy_viterbi():
+    vp, P_d, v, grade, lam = synthetic_route()
+    init_state = ps.MO * 12 + 0
+    r = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
+    ref = _reference_cost(vp, P_d, v, grade, lam, init_state, PRM)
+    np.testing.assert_allclose(float(r.cost), ref, rtol=1e-10)
+    _check_result(r, vp, v, grade, lam, PRM, init_state)
+    assert int(r.n_infeasible) == 0
+    # the paper's narrative: motor-only on the flat, engine on the climb
+    assert int(r.mode[6]) == ps.MM and int(r.mode[10]) in (ps.MC, ps.ME)
+
+
+def test_switching_costs_reduce_switching():
+    vp, P_d, v, grade, lam = synthetic_route(seed=1)
+    free = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0,
+                          params=PRM._replace(weight=0.0))
+    paid = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
+    n = lambda r: int(r.n_mode_switches) + int(r.n_gear_switches)  # noqa: E731
+    assert n(paid) <= n(free)
+    # without switching costs the DP is the per-step argmin of eq. 36
+    tab = _htab(vp, P_d, v, lam)
+    Hs, _, _ = ps.optimal_mode_gear(tab)
+    np.testing.assert_allclose(np.asarray(free.H), np.asarray(Hs), rtol=1e-12)
+    np.testing.assert_allclose(float(free.cost), float(np.sum(Hs) * DT), rtol=1e-12)
+
+
+def test_infeasible_step_passes_through():
+    vp, P_d, v, grade, lam = synthetic_route(seed=2)
+    P_d = P_d.copy()
+    P_d[14] = 5e6  # beyond every mode and gear
+    r = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
+    assert int(r.n_infeasible) == 1 and np.isfinite(float(r.cost))
+    ref = _reference_cost(vp, P_d, v, grade, lam, ps.MO * 12, PRM)
+    np.testing.assert_allclose(float(r.cost), ref, rtol=1e-10)
+
+
+# ---------------------------------------------------------------------------------- MPC
+def test_mpc_with_full_horizon_equals_full_dp():
+    vp, P_d, v, grade, lam = synthetic_route(seed=3)
+    full = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.ME, init_gear=5, params=PRM)
+    mpc = l1.level1_mpc(vp, P_d, v, grade, lam, DT, init_mode=ps.ME, init_gear=5, params=PRM,
+                        horizon=T)
+    np.testing.assert_allclose(float(mpc.cost), float(full.cost), rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(mpc.state), np.asarray(full.state))
+
+
+def test_mpc_short_horizon_is_feasible_and_not_better():
+    vp, P_d, v, grade, lam = synthetic_route(seed=4)
+    mask = np.ones(T, bool)
+    mask[-3:] = False  # padded tail
+    full = l1.level1_full(vp, P_d, v, grade, lam, DT, mask, ps.MO, 0, PRM)
+    mpc = l1.level1_mpc(vp, P_d, v, grade, lam, DT, mask, ps.MO, 0, PRM, horizon=5)
+    assert float(mpc.cost) >= float(full.cost) - 1e-6
+    _check_result(mpc, vp, v, grade, lam, PRM, ps.MO * 12, mask)
+    assert np.all(np.asarray(mpc.state)[-3:] == np.asarray(mpc.state)[-4])
+
+
+# ------------------------------------------------------------------------------ batching
+def test_batch_equals_single_and_does_not_recompile():
+    routes = [synthetic_route(seed=s) for s in (5, 6)]
+    P_d = np.stack([r[1] for r in routes])
+    v = np.stack([r[2] for r in routes])
+    grade = np.stack([r[3] for r in routes])
+    mask = np.ones_like(P_d, bool)
+    mask[1, -4:] = False
+    vps = stack_vehicles([VP.replace(mass=20000.0), VP.replace(mass=30000.0)])
+    lam = np.array([-1.9, -2.2])
+    rb = l1.level1_batch(vps, P_d, v, grade, mask, lam, DT, ps.MO, 0, PRM)
+    assert rb.cost.shape == (2, 2, 2) and rb.mode.shape == (2, 2, 2, T)
+    for i in range(2):
+        for j, m in enumerate((20000.0, 30000.0)):
+            for k_, la in enumerate(lam):
+                r = l1.level1_full(VP.replace(mass=m), P_d[i], v[i], grade[i], la, DT, mask[i],
+                                   ps.MO, 0, PRM)
+                np.testing.assert_allclose(float(rb.cost[i, j, k_]), float(r.cost), rtol=1e-10)
+                np.testing.assert_array_equal(np.asarray(rb.state[i, j, k_]), np.asarray(r.state))
+    n0 = l1.TRACES["level1_batch"]
+    vps2 = stack_vehicles([VP.replace(mass=22000.0), VP.replace(mass=41000.0, I_e=4.0)])
+    rb2 = l1.level1_batch(vps2, P_d * 1.1, v, grade, mask, lam - 0.3, 0.5, ps.ME, 3,
+                          PRM._replace(lambda_t=-30e3, averaged=1.0))
+    jax.block_until_ready(rb2)
+    assert l1.TRACES["level1_batch"] == n0  # new values, same shapes: no new trace
+    assert not np.allclose(np.asarray(rb2.cost), np.asarray(rb.cost))
+
+
+def test_float32_agrees_with_float64():
+    vp, P_d, v, grade, lam = synthetic_route(seed=7)
+    r64 = l1.level1_full(vp, P_d, v, grade, lam, DT, None, ps.MO, 0, PRM)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
+    vp32 = jax.tree_util.tree_map(f32, vp)
+    r32 = l1.level1_full(vp32, f32(P_d), f32(v), f32(grade), f32(lam), f32(DT), None, ps.MO, 0,
+                         jax.tree_util.tree_map(f32, PRM))
+    assert abs(float(r32.cost) - float(r64.cost)) <= 1e-3 * abs(float(r64.cost))

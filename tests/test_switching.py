@@ -1,0 +1,153 @@
+"""Switching costs of Appendix C: Table A1 (synchronisation), Table A2 (traction interruption),
+the dense cost matrix against a per-pair NumPy reference, and the open-driveline event against
+a time-stepped simulation."""
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxems import switching as sw
+from jaxems.levels import powersplit as ps
+from jaxems.params import RPM, load_vehicle
+
+VP = load_vehicle()
+PRM = sw.SwitchCostParams()
+cost_matrix_j = jax.jit(sw.switch_cost_matrix)
+
+# Table A1 of the paper (kJ, lambda_b = -2.2), direction costs and averages of linked events
+PAPER_A1 = {
+    "G_down_Mm": 10, "G_down_Me": 20, "G_down_Mc": 30, "G_up": 0,
+    "Me->Mm": 16, "Mm->Me": 31, "Me->Mc": 16, "Mc->Me": 0, "Mm->Mc": 31, "Mc->Mm": 0,
+}
+PAPER_A1_AVG = {"Me->Mm": 24, "Me->Mc": 8, "Mm->Mc": 16}
+
+
+def test_table_a1_matches_paper():
+    t = sw.table_a1(VP, lam=-2.2)
+    assert set(t) == set(sw.A1_TRANSITIONS)
+    for name, paper in PAPER_A1.items():
+        kJ = t[name][0] / 1e3
+        if name == "G_down_Mc":
+            # The paper prints 30 = 10 + 20 (its rounded M_m and M_e values); the inertias give
+            # 1/2 (I_e + I_m) (w_1^2 - w_0^2) 2.2 = 31.2 kJ, the sum of the unrounded 10.4, 20.8.
+            exact = 0.5 * 4.5 * ((1200 * RPM) ** 2 - (930 * RPM) ** 2) * 2.2 / 1e3
+            assert kJ == pytest.approx(exact, rel=1e-12)
+            assert kJ == pytest.approx(t["G_down_Mm"][0] / 1e3 + t["G_down_Me"][0] / 1e3)
+            assert abs(kJ - paper) < 1.5
+        else:
+            assert abs(kJ - paper) < 1.0, (name, kJ, paper)
+    for name, paper in PAPER_A1_AVG.items():
+        assert abs(t[name][1] / 1e3 - paper) < 1.0, (name, t[name][1], paper)
+        a, b = name.split("->")
+        assert t[name][1] == pytest.approx(0.5 * (t[name][0] + t[f"{b}->{a}"][0]))
+
+
+def test_table_a2_ordering_and_paper_values():
+    vp = VP.replace(mass=25000.0)  # the paper's short-cycle truck
+    rows = sw.table_a2(vp, slopes_pct=(0.0, 6.0, 12.0))
+    cost = [r["cost_kJ"] for r in rows]
+    dv = [r["speed_loss_mps"] for r in rows]
+    dt = [r["time_loss_s"] for r in rows]
+    assert cost[0] < cost[1] < cost[2]
+    assert dv[0] < dv[1] < dv[2] and dt[0] < dt[1] < dt[2]
+    assert not any(r["saturated"] for r in rows)
+    # the paper's 6 % and 12 % rows (0.65 / 1.25 m/s, 0.07 / 0.22 s, 1.8 / 5.6 kJ) to within
+    # what the different traction limit of our curves explains (see experiments/table_a2.py)
+    assert dv[1] == pytest.approx(0.65, abs=0.03) and dv[2] == pytest.approx(1.25, abs=0.05)
+    assert dt[1] == pytest.approx(0.07, abs=0.01) and dt[2] == pytest.approx(0.22, abs=0.03)
+    assert cost[1] == pytest.approx(1.8, abs=0.25) and cost[2] == pytest.approx(5.6, abs=0.6)
+
+
+def simulate_event(m, F0, v0, tau, F_max, dt=1e-5):
+    """Time-stepped open-driveline event (Figure A1): coast tau s, then full traction until
+    v_0 is recovered; returns (time loss, speed loss) with respect to cruising at v_0."""
+    t, s, v = 0.0, 0.0, v0
+    n = int(round(tau / dt))
+    for _ in range(n):
+        s += v * dt - 0.5 * F0 / m * dt * dt
+        v -= F0 / m * dt
+    v1 = v
+    a = (F_max - F0) / m
+    while v < v0:
+        h = min(dt, (v0 - v) / a)
+        s += v * h + 0.5 * a * h * h
+        v += a * h
+        t += h
+    t_total = tau + t
+    return t_total - s / v0, v0 - v1
+
+
+@pytest.mark.parametrize("F0", [500.0, 8000.0, 20000.0])
+def test_traction_loss_matches_simulation(F0):
+    m, v0, tau, F_max = 20000.0, 7.0, 1.0, 30000.0
+    vp = VP.replace(mass=m)
+    r = sw.traction_loss(vp, F0, v0, tau, F_max, PRM)
+    t_loss, v_loss = simulate_event(m, F0, v0, tau, F_max, dt=1e-4)
+    assert float(r.speed_loss_mps) == pytest.approx(v_loss, rel=1e-6)
+    assert float(r.time_loss_s) == pytest.approx(t_loss, rel=1e-3)
+    assert float(r.cost) == pytest.approx(-PRM.lambda_t * t_loss, rel=1e-3)
+
+
+def test_traction_saturated_and_downhill_use_kinetic_energy():
+    m, v0 = 20000.0, 7.0
+    vp = VP.replace(mass=m)
+    up = sw.traction_loss(vp, 40000.0, v0, 1.0, 30000.0, PRM)  # F0 >= F_max: saturated
+    v1 = v0 - 40000.0 / m
+    assert bool(up.saturated)
+    assert float(up.cost) == pytest.approx(-PRM.lambda_k * 0.5 * m * (v0**2 - v1**2))
+    down = sw.traction_loss(vp, -10000.0, v0, 1.0, 30000.0, PRM)
+    v1 = v0 + 10000.0 / m
+    assert float(down.cost) == pytest.approx(-PRM.lambda_k * 0.5 * m * (v1**2 - v0**2))
+    assert float(sw.traction_loss(vp, 0.0, v0, 1.0, 3e4, PRM).cost) == 0.0
+
+
+def ref_cost_matrix(vp, v, grade, lam, prm):
+    """Per-pair loop: per-component synchronisation (A17-A19) + one traction event."""
+    f = {k: np.asarray(x, dtype=np.float64) for k, x in vp._asdict().items()}
+    n_g = f["gear_ratio"].shape[0]
+    S = 4 * n_g
+    w = f["gear_ratio"] * f["r_d"] * v
+    trac = np.asarray(sw.traction_cost_table(vp, v, grade, prm))
+    a = float(prm.averaged)
+    C = np.zeros((S, S))
+    for s in range(S):
+        for t in range(S):
+            if s == t:
+                continue
+            m0, g0, m1, g1 = s // n_g, s % n_g, t // n_g, t % n_g
+            E = 0.0
+            for inertia, flags in ((f["I_e"], ps.ENGINE_CONNECTED), (f["I_m"], ps.MOTOR_CONNECTED)):
+                U0 = 0.5 * inertia * flags[m0] * w[g0] ** 2
+                U1 = 0.5 * inertia * flags[m1] * w[g1] ** 2
+                E += (1 - a) * max(U1 - U0, 0.0) + a * 0.5 * abs(U1 - U0)
+            row = 2 if (m0 != m1 and g0 != g1) else (0 if m0 != m1 else 1)
+            C[s, t] = float(prm.weight) * (-lam * E + trac[row, t])
+    return C
+
+
+@settings(max_examples=10)
+@given(v=st.floats(0.5, 25.0), grade=st.floats(-0.12, 0.12), lam=st.floats(-3.0, -1.2),
+       averaged=st.sampled_from([0.0, 0.5, 1.0]))
+def test_cost_matrix_matches_reference(v, grade, lam, averaged):
+    prm = sw.SwitchCostParams(averaged=averaged, lambda_t=-25e3, lambda_k=-2.2)
+    C = np.asarray(cost_matrix_j(VP, v, grade, lam, prm))
+    np.testing.assert_allclose(C, ref_cost_matrix(VP, v, grade, lam, prm), rtol=1e-10, atol=1e-6)
+    assert np.all(C >= 0) and np.all(np.diag(C) == 0)
+    # traction interruption is one event: a combined switch costs no more than the two steps
+    n_g = VP.n_gears
+    for m0, g0, m1, g1 in [(1, 4, 0, 6), (2, 9, 0, 3), (0, 5, 2, 8)]:
+        s, mid, t = m0 * n_g + g0, m1 * n_g + g0, m1 * n_g + g1
+        assert C[s, t] <= C[s, mid] + C[mid, t] + 1e-6
+
+
+def test_eps_M_and_eps_G_are_slices():
+    C = np.asarray(sw.switch_cost_matrix(VP, 10.0, 0.02, -2.0, PRM))
+    eM = np.asarray(sw.eps_M(VP, 10.0, 0.02, -2.0, 4, PRM))
+    eG = np.asarray(sw.eps_G(VP, 10.0, 0.02, -2.0, 1, PRM))
+    n_g = VP.n_gears
+    assert eM[1, 2] == C[1 * n_g + 4, 2 * n_g + 4]
+    assert eG[3, 7] == C[n_g + 3, n_g + 7]
+    # starting the engine costs more than starting the motor (inertia 3 vs 1.5 kg m^2)
+    assert eM[ps.MM, ps.ME] > eM[ps.ME, ps.MM] > 0
