@@ -131,7 +131,7 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
                 f"{_where(source, r.line, c_s)}: distance not increasing ({r.s_m:g} m after "
                 f"{prev.s_m:g} m on line {prev.line})"
             )
-    if all(r.v_kmh == 0 for r in rows[:-1]):
+    if all(r.v_kmh == 0 for r in rows):
         raise RouteError(f"{source}: no row with a non-zero speed; the route never moves")
 
 
