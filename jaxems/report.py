@@ -1,0 +1,456 @@
+"""Sweep reports: PNG figures and one self-contained ``report.html`` (matplotlib, Agg).
+
+    jaxems report DIR        (also run at the end of `jaxems sweep`)
+
+Writes into DIR (a sweep results directory, see `jaxems.sweep`):
+
+- ``saving_heatmap_<route>.png``: saving (%) over mass x battery size, one panel per strategy,
+  for each route;
+- ``saving_heatmap_all_routes.png``: the fleet saving over mass x battery size, from the fuel
+  summed over all routes (every route counts with its fuel, i.e. its length and load);
+- ``fuel_per_strategy.png``: corrected fuel (l/100 km) per strategy per route, mean over the
+  grid, with the range over the grid as error bars;
+- ``saving_distribution.png``: distribution of the savings over routes and grid points;
+- ``best_battery.png``: for each mass, the battery size with the largest fleet saving and the
+  smallest one within `SUFFICIENT_PP` percentage points of it;
+- ``report.html``: all of the above embedded as base64 data URIs, plus tables of the numbers
+  (opens without network access).
+
+Savings are those of `jaxems.sweep.add_savings` (corrected fuel), against ``conventional`` when
+the sweep ran it, otherwise against ``baseline``. Grid parameters other than mass and battery
+size are averaged over in the figures (the tables list them).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SUFFICIENT_PP = 0.5  # percentage points: "sufficient" battery = within this of the best saving
+MAX_FULL_TABLE = 2000  # rows: the full results table goes into the page up to this size
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def reference_strategy(df) -> str | None:
+    """The strategy savings are shown against: conventional if run, else baseline, else None."""
+    present = set(df["strategy"])
+    for ref in ("conventional", "baseline"):
+        if ref in present:
+            return ref
+    return None
+
+
+def _strategies(df) -> list[str]:
+    return list(dict.fromkeys(df["strategy"]))
+
+
+def _routes(df) -> list[str]:
+    return list(dict.fromkeys(df["route"]))
+
+
+def corrected_l_per_100km(df) -> np.ndarray:
+    """Corrected fuel in l/100 km: fuel_l_per_100km scaled by fuel_corrected_J / fuel_J."""
+    f = df["fuel_J"].to_numpy(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(f > 0, df["fuel_corrected_J"].to_numpy(np.float64) / f, np.nan)
+    return df["fuel_l_per_100km"].to_numpy(np.float64) * scale
+
+
+def fleet_saving(df, ref: str):
+    """Fleet saving (%) per (strategy, mass_kg, battery_MJ): 100 (sum F_ref - sum F) / sum F_ref.
+
+    Sums of corrected fuel over routes and over the other grid parameters, taken only over the
+    (route, grid point) pairs where both the strategy and the reference finished with status ok.
+    Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n.
+    """
+    import pandas as pd
+
+    ok = df[df["status"] == "ok"]
+    refs = ok[ok["strategy"] == ref][["route", "grid_index", "fuel_corrected_J"]]
+    refs = refs.rename(columns={"fuel_corrected_J": "F_ref"})
+    m = ok.merge(refs, on=["route", "grid_index"], how="inner")
+    rows = []
+    for (s, mass, bat), g in m.groupby(["strategy", "mass_kg", "battery_MJ"], sort=True):
+        fr = g["F_ref"].sum()
+        rows.append({"strategy": s, "mass_kg": mass, "battery_MJ": bat,
+                     "saving_pct": 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr,
+                     "n": len(g)})
+    return pd.DataFrame(rows, columns=["strategy", "mass_kg", "battery_MJ", "saving_pct", "n"])
+
+
+def best_battery(fleet) -> object:
+    """Per (strategy, mass): the battery with the largest fleet saving, and the smallest battery
+    whose saving is within `SUFFICIENT_PP` percentage points of it."""
+    import pandas as pd
+
+    rows = []
+    for (s, mass), g in fleet.dropna(subset=["saving_pct"]).groupby(["strategy", "mass_kg"]):
+        g = g.sort_values("battery_MJ")
+        i = int(np.argmax(g["saving_pct"].to_numpy()))
+        best = g.iloc[i]
+        suff = g[g["saving_pct"] >= best["saving_pct"] - SUFFICIENT_PP].iloc[0]
+        rows.append({"strategy": s, "mass_kg": mass, "best_battery_MJ": best["battery_MJ"],
+                     "best_saving_pct": best["saving_pct"],
+                     "sufficient_battery_MJ": suff["battery_MJ"],
+                     "sufficient_saving_pct": suff["saving_pct"]})
+    return pd.DataFrame(rows, columns=["strategy", "mass_kg", "best_battery_MJ",
+                                       "best_saving_pct", "sufficient_battery_MJ",
+                                       "sufficient_saving_pct"])
+
+
+# --------------------------------------------------------------------------------- figures
+def _heatmap(ax, table, title: str, vlim: float):
+    """table: DataFrame index mass_kg, columns battery_MJ, values saving %."""
+    from matplotlib.colors import TwoSlopeNorm
+
+    z = table.to_numpy(np.float64)
+    norm = TwoSlopeNorm(vcenter=0.0, vmin=-vlim, vmax=vlim)
+    im = ax.imshow(z, origin="lower", aspect="auto", cmap="RdYlGn", norm=norm)
+    ax.set_xticks(range(z.shape[1]), [f"{x:g}" for x in table.columns])
+    ax.set_yticks(range(z.shape[0]), [f"{y / 1000:g}" for y in table.index])
+    ax.set_xlabel("battery (MJ)")
+    ax.set_ylabel("mass (t)")
+    ax.set_title(title, fontsize=9)
+    if z.size <= 150:
+        for (i, j), v in np.ndenumerate(z):
+            if np.isfinite(v):
+                ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7)
+    return im
+
+
+def _heatmap_figure(path: Path, panels: list[tuple[str, object]], suptitle: str) -> bool:
+    plt = _plt()
+    panels = [(t, tab) for t, tab in panels if tab.size and np.isfinite(tab.to_numpy()).any()]
+    if not panels:
+        return False
+    vals = np.concatenate([tab.to_numpy(np.float64).ravel() for _, tab in panels])
+    vlim = max(float(np.nanmax(np.abs(vals))), 1e-3)
+    n = len(panels)
+    fig, axes = plt.subplots(1, n, figsize=(3.6 * n + 1.2, 3.4), squeeze=False,
+                             constrained_layout=True)
+    im = None
+    for ax, (title, tab) in zip(axes[0], panels, strict=True):
+        im = _heatmap(ax, tab, title, vlim)
+    fig.colorbar(im, ax=axes[0].tolist(), label="saving (%)")
+    fig.suptitle(suptitle, fontsize=10)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
+def _pivot(df, col: str):
+    return df.pivot_table(index="mass_kg", columns="battery_MJ", values=col, aggfunc="mean")
+
+
+def plot_route_heatmaps(out: Path, df, ref: str) -> list[Path]:
+    """One PNG per route: saving vs `ref` over mass x battery, a panel per other strategy."""
+    paths = []
+    col = f"saving_vs_{ref}_pct"
+    others = [s for s in _strategies(df) if s != ref]
+    for r in _routes(df):
+        d = df[df["route"] == r]
+        panels = [(f"{s} vs {ref}", _pivot(d[d["strategy"] == s], col)) for s in others]
+        p = out / f"saving_heatmap_{_safe(r)}.png"
+        if _heatmap_figure(p, panels, f"{r}: fuel saving (%) against {ref}"):
+            paths.append(p)
+    return paths
+
+
+def plot_fleet_heatmap(out: Path, fleet, ref: str) -> Path | None:
+    """Fleet saving over mass x battery (fuel summed over all routes), a panel per strategy."""
+    panels = []
+    for s in dict.fromkeys(fleet["strategy"]):
+        if s == ref:
+            continue
+        d = fleet[fleet["strategy"] == s]
+        panels.append((f"{s} vs {ref}", d.pivot_table(index="mass_kg", columns="battery_MJ",
+                                                      values="saving_pct", aggfunc="mean")))
+    p = out / "saving_heatmap_all_routes.png"
+    ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref}")
+    return p if ok else None
+
+
+def plot_fuel(out: Path, df) -> Path | None:
+    """Grouped bars: corrected fuel (l/100 km) per route and strategy (mean, min-max bars)."""
+    plt = _plt()
+    d = df[df["status"] == "ok"].assign(l100=lambda x: corrected_l_per_100km(x))
+    if d.empty:
+        return None
+    routes, strats = _routes(df), _strategies(df)
+    fig, ax = plt.subplots(figsize=(max(6.0, 1.2 * len(routes) * max(1, len(strats)) * 0.5 + 3),
+                                    4.0), constrained_layout=True)
+    w = 0.8 / len(strats)
+    for j, s in enumerate(strats):
+        mean, lo, hi = [], [], []
+        for r in routes:
+            x = d[(d["route"] == r) & (d["strategy"] == s)]["l100"].to_numpy()
+            x = x[np.isfinite(x)]
+            mean.append(x.mean() if x.size else np.nan)
+            lo.append(x.min() if x.size else np.nan)
+            hi.append(x.max() if x.size else np.nan)
+        mean, lo, hi = map(np.asarray, (mean, lo, hi))
+        xs = np.arange(len(routes)) + (j - (len(strats) - 1) / 2) * w
+        ax.bar(xs, mean, w, label=s, color=f"C{j}")
+        ax.errorbar(xs, mean, yerr=[mean - lo, hi - mean], fmt="none", ecolor="0.2", lw=0.8,
+                    capsize=2)
+    ax.set_xticks(range(len(routes)), routes, rotation=20 if len(routes) > 4 else 0)
+    ax.set_ylabel("fuel, corrected (l/100 km)")
+    ax.set_title("fuel per strategy and route (mean over the grid; bars: range over the grid)",
+                 fontsize=9)
+    ax.legend(fontsize=8)
+    p = out / "fuel_per_strategy.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def plot_distribution(out: Path, df, ref: str) -> Path | None:
+    """Box plot per strategy of the savings over all routes and grid points; route means."""
+    plt = _plt()
+    col = f"saving_vs_{ref}_pct"
+    strats = [s for s in _strategies(df) if s != ref]
+    data = [df[df["strategy"] == s][col].dropna().to_numpy() for s in strats]
+    if not strats or not any(x.size for x in data):
+        return None
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.6 * len(strats) + 2), 4.0),
+                           constrained_layout=True)
+    ax.boxplot([x if x.size else [np.nan] for x in data], tick_labels=strats, showfliers=False)
+    rng = np.random.default_rng(0)
+    for k, r in enumerate(_routes(df)):
+        for j, s in enumerate(strats):
+            y = df[(df["strategy"] == s) & (df["route"] == r)][col].dropna().to_numpy()
+            if y.size:
+                ax.scatter(j + 1 + rng.uniform(-0.15, 0.15, y.size), y, s=8, alpha=0.5,
+                           color=f"C{k % 10}", label=r if j == 0 else None)
+    ax.axhline(0, color="0.5", lw=0.6)
+    ax.set_ylabel(f"saving against {ref} (%)")
+    ax.set_title("distribution of savings over routes (points: route x grid point)", fontsize=9)
+    if len(_routes(df)) <= 12:
+        ax.legend(fontsize=7, loc="best")
+    p = out / "saving_distribution.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+def plot_best_battery(out: Path, best) -> Path | None:
+    """Best and sufficient battery size per mass, a line per strategy."""
+    plt = _plt()
+    if best.empty:
+        return None
+    fig, ax = plt.subplots(figsize=(6.0, 4.0), constrained_layout=True)
+    for j, s in enumerate(dict.fromkeys(best["strategy"])):
+        d = best[best["strategy"] == s].sort_values("mass_kg")
+        ax.plot(d["mass_kg"] / 1000, d["best_battery_MJ"], "o-", color=f"C{j}",
+                label=f"{s}: largest saving")
+        ax.plot(d["mass_kg"] / 1000, d["sufficient_battery_MJ"], "s--", color=f"C{j}",
+                alpha=0.6, label=f"{s}: within {SUFFICIENT_PP:g} pp")
+    ax.set_xlabel("mass (t)")
+    ax.set_ylabel("battery (MJ)")
+    ax.set_title("best battery size per mass (fleet saving over all routes)", fontsize=9)
+    ax.legend(fontsize=7)
+    p = out / "best_battery.png"
+    fig.savefig(p, dpi=100)
+    plt.close(fig)
+    return p
+
+
+# ------------------------------------------------------------------------------------ html
+def _fmt(x) -> str:
+    if isinstance(x, float | np.floating):
+        if not np.isfinite(x):
+            return ""
+        return f"{x:.4g}" if abs(x) < 1e5 else f"{x:.6g}"
+    return html.escape(str(x))
+
+
+def _table(df, caption: str = "") -> str:
+    head = "".join(f"<th>{html.escape(str(c))}</th>" for c in df.columns)
+    body = "\n".join("<tr>" + "".join(f"<td>{_fmt(v)}</td>" for v in row) + "</tr>"
+                     for row in df.itertuples(index=False))
+    cap = f"<caption>{html.escape(caption)}</caption>" if caption else ""
+    return f"<table>{cap}<thead><tr>{head}</tr></thead><tbody>\n{body}\n</tbody></table>"
+
+
+def _img(path: Path, alt: str) -> str:
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return (f'<figure><img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+            f"<figcaption>{html.escape(alt)} ({path.name})</figcaption></figure>")
+
+
+_CSS = """
+body { font-family: sans-serif; margin: 1.5em; max-width: 1300px; color: #222; }
+table { border-collapse: collapse; margin: 0.8em 0; font-size: 12px; }
+th, td { border: 1px solid #ccc; padding: 2px 6px; text-align: right; }
+th { background: #eee; } caption { text-align: left; font-weight: bold; padding: 4px 0; }
+figure { display: inline-block; margin: 0.5em; } img { max-width: 100%; }
+figcaption { font-size: 11px; color: #555; } .note { color: #555; font-size: 13px; }
+"""
+
+
+def summary_table(df, ref: str | None):
+    """Per route and strategy: rows, ok rows, mean fuel and mean/min/max saving."""
+    import pandas as pd
+
+    rows = []
+    for r in _routes(df):
+        for s in _strategies(df):
+            d = df[(df["route"] == r) & (df["strategy"] == s)]
+            ok = d[d["status"] == "ok"]
+            row = {"route": r, "strategy": s, "rows": len(d), "ok": len(ok),
+                   "fuel_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok) else np.nan,
+                   "l_per_100km_mean": np.nanmean(corrected_l_per_100km(ok)) if len(ok)
+                   else np.nan}
+            if ref is not None:
+                sv = d[f"saving_vs_{ref}_pct"].dropna()
+                row |= {f"saving_vs_{ref}_mean_pct": sv.mean() if len(sv) else np.nan,
+                        "min_pct": sv.min() if len(sv) else np.nan,
+                        "max_pct": sv.max() if len(sv) else np.nan}
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def write_report(directory: str | Path, df=None) -> Path:
+    """Write the PNGs and ``report.html`` into a sweep directory; returns the HTML path.
+
+    df: the results (default `jaxems.sweep.load_sweep(directory)`); an unfinished sweep gives a
+    report of the rows so far.
+    """
+    import json
+
+    from .sweep import CONFIG_FILE, load_sweep
+
+    out = Path(directory)
+    if df is None:
+        df = load_sweep(out)
+    meta = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))
+    canon = meta["canonical"]
+    ref = reference_strategy(df)
+    figs: list[tuple[Path, str]] = []
+    fleet = best = None
+    if ref is not None:
+        fleet = fleet_saving(df, ref)
+        best = best_battery(fleet[fleet["strategy"] != ref])
+        p = plot_fleet_heatmap(out, fleet, ref)
+        if p:
+            figs.append((p, f"fleet saving (%) against {ref} over mass x battery, all routes"))
+        for p in plot_route_heatmaps(out, df, ref):
+            figs.append((p, f"saving (%) against {ref}: {p.stem.removeprefix('saving_heatmap_')}"))
+    p = plot_fuel(out, df)
+    if p:
+        figs.append((p, "corrected fuel per strategy and route"))
+    if ref is not None:
+        p = plot_distribution(out, df, ref)
+        if p:
+            figs.append((p, "distribution of savings over routes"))
+        p = plot_best_battery(out, best)
+        if p:
+            figs.append((p, "best battery size per mass"))
+
+    grid_cols = list(canon["grid"]) + [k for k in ("mass_kg", "battery_MJ")
+                                      if k not in canon["grid"]]
+    n_total = len(canon["routes"]) * len(canon["strategies"]) * int(
+        np.prod([len(v) for v in canon["grid"].values()]))
+    status = df["status"].value_counts()
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'>",
+        f"<title>jaxems sweep report: {html.escape(out.name)}</title>",
+        f"<style>{_CSS}</style></head><body>",
+        f"<h1>jaxems sweep report: {html.escape(out.name)}</h1>",
+        f"<p class='note'>{len(df)} of {n_total} configurations "
+        f"({len(canon['routes'])} routes x "
+        f"{' x '.join(f'{len(v)} {k}' for k, v in canon['grid'].items())} x "
+        f"{len(canon['strategies'])} strategies); "
+        f"status: {html.escape(', '.join(f'{k} {v}' for k, v in status.items()))}. "
+        f"Written {time.strftime('%Y-%m-%d %H:%M')}.</p>",
+        "<p class='note'>Fuel is corrected for the battery energy left at the end: "
+        "F = fuel_J + lambda_b delta_Eb_J (lambda_b &lt; 0). Savings: 100 (F_ref - F) / F_ref "
+        "on the same route and grid point" + (f", against <b>{ref}</b>" if ref else "") +
+        ". The fleet saving sums the fuel over all routes. Grid parameters other than mass and "
+        "battery are averaged over in the figures.</p>",
+    ]
+    if len(df) < n_total:
+        parts.append(f"<p><b>Unfinished sweep:</b> {n_total - len(df)} configurations are "
+                     f"missing; rerun <code>jaxems sweep</code> to complete it.</p>")
+    parts.append("<h2>Figures</h2>")
+    parts += [_img(p, alt) for p, alt in figs]
+    parts.append("<h2>Numbers</h2>")
+    parts.append(_table(summary_table(df, ref), "per route and strategy (status ok rows)"))
+    if best is not None and not best.empty:
+        parts.append(_table(best, f"best battery per mass (fleet saving against {ref}; "
+                                  f"sufficient: smallest within {SUFFICIENT_PP:g} pp)"))
+    if fleet is not None and not fleet.empty:
+        parts.append(_table(fleet[fleet["strategy"] != ref],
+                            f"fleet saving against {ref} per mass and battery"))
+    bad = df[df["status"] != "ok"]
+    if len(bad):
+        parts.append(_table(bad[["route", "strategy", *grid_cols, "status"]],
+                            "configurations that did not finish"))
+    cols = ["route", "strategy", *grid_cols, "fuel_J", "fuel_corrected_J", "fuel_l_per_100km",
+            "delta_Eb_J", "lambda_b", "mode_switches", "gear_switches", "trip_time_s",
+            "saving_vs_conventional_pct", "saving_vs_baseline_pct", "status"]
+    if len(df) <= MAX_FULL_TABLE:
+        parts.append(_table(df[cols], "all results"))
+    else:
+        parts.append(f"<p>{len(df)} rows: the full table is in results.parquet "
+                     f"(<code>jaxems.load_sweep(DIR)</code>).</p>")
+    parts.append("</body></html>")
+    page = out / "report.html"
+    tmp = out / ".report.html.tmp"
+    tmp.write_text("\n".join(parts), encoding="utf-8")
+    tmp.replace(page)
+    return page
+
+
+# -------------------------------------------------------------------------------------- CLI
+def cmd_report(args) -> int:
+    """`jaxems report DIR`: write report.html and the PNG figures of a sweep directory."""
+    page = write_report(args.directory)
+    print(page)
+    return 0
+
+
+def register_report(sub) -> None:
+    """Add the ``report`` subcommand to an argparse subparsers object (`jaxems.cli`)."""
+    p = sub.add_parser("report", help="figures and report.html of a sweep directory",
+                       description=cmd_report.__doc__)
+    p.add_argument("directory", metavar="DIR", help="a sweep results directory")
+    p.set_defaults(func=cmd_report)
+
+
+def main(argv=None) -> int:
+    """``python -m jaxems.report DIR``."""
+    import argparse
+
+    from .sweep import SweepError
+
+    ap = argparse.ArgumentParser(prog="python -m jaxems.report", description=cmd_report.__doc__)
+    ap.add_argument("directory", metavar="DIR", help="a sweep results directory")
+    args = ap.parse_args(argv)
+    try:
+        return cmd_report(args)
+    except (SweepError, ValueError, OSError) as e:
+        print(f"jaxems: error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

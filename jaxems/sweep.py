@@ -1,0 +1,970 @@
+"""Fleet sweeps: routes x vehicle-parameter grids x strategies, batched, resumable, distributed.
+
+    jaxems sweep SWEEP.toml [--out DIR] [--workers N | --scheduler ADDRESS] [--resume] [--quiet]
+
+The sweep file (TOML) names route files or globs, a vehicle, strategies and a grid over vehicle
+parameters; see `load_config` for the keys and `examples/` for examples. The grid is the
+Cartesian product of the listed values (first key slowest).
+
+Execution. The work is cut into chunks: (route, strategy, `batch_size` consecutive grid points).
+Each chunk is one call of `jaxems.strategies.simulate_batch` on a vehicle batch of exactly
+`batch_size` members (the last chunk of a route repeats its last point; the padding rows are
+dropped), with the same static number of time steps for every chunk of a route (the maximum
+over the route's whole grid, bucketed). So every chunk of a (strategy, route shape) has the
+same shapes and the jitted kernels compile once per (strategy, padded route length, step
+bucket), not once per chunk; new grid values never recompile.
+
+Nothing lost. Every finished chunk is written to ``DIR/chunks/<chunk id>.parquet`` atomically
+(temporary file, fsync, rename). Chunk ids are deterministic (route index and name, strategy,
+chunk index), so a rerun into the same directory (or ``--resume``) computes only the chunks
+without a file. ``DIR/sweep.json`` holds the canonical sweep (parsed settings, route and
+vehicle content hashes) and its fingerprint; a different sweep in the same directory is
+refused. At the end the chunks are merged into ``DIR/results.parquet`` (see `load_sweep`) and
+the report is written (`jaxems.report`).
+
+Distributed. The default runs in-process. ``--workers N`` starts a local Dask cluster of N
+single-threaded worker processes; ``--scheduler tcp://HOST:PORT`` sends the chunks to a running
+Dask cluster (``dask scheduler`` / ``dask worker tcp://HOST:8786 --nthreads 1``). Each Dask task
+is one chunk and returns its rows; the client writes the chunk files, so workers need no shared
+file system. Workers keep their compiled kernels between tasks (module-level jit caches).
+
+Precision: sweeps run in float32 unless the sweep file says ``precision = "float64"``; the
+setting is applied around each chunk (in-process and on workers), so it does not leak.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import dataclasses
+import glob
+import hashlib
+import itertools
+import json
+import math
+import os
+import re
+import sys
+import threading
+import time
+import tomllib
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .params import _SCHEMA, VehicleError, VehicleParams, load_vehicle
+from .route import Route, RouteError
+
+FORMAT_VERSION = 1
+CONFIG_FILE = "sweep.json"
+SOURCE_COPY = "sweep.toml"
+CHUNK_DIR = "chunks"
+RESULTS_FILE = "results.parquet"
+
+# Fields of `jaxems simulate --json` that `simulate_batch` returns (float unless noted).
+RESULT_FIELDS = (
+    "length_m", "trip_time_s", "fuel_J", "fuel_l_per_100km", "delta_Eb_J", "Eb_min_J",
+    "Eb_max_J", "mode_switches", "gear_switches", "lambda_b", "max_speed_shortfall_mps",
+)
+INT_FIELDS = ("mode_switches", "gear_switches")
+# Reference strategies for the savings columns.
+REFERENCES = ("conventional", "baseline")
+# Strategies without a battery: their fuel needs no correction for a battery energy change.
+NO_BATTERY = ("conventional",)
+
+# User-facing grid keys (units in the name) -> (VehicleParams field, scale to SI, check).
+GRID_KEYS: dict[str, tuple[str, float, str]] = {
+    "mass_kg": ("mass", 1.0, "pos"),
+    "battery_MJ": ("E_b_max", 1e6, "pos"),
+    "motor_power_kW": ("pm_max", 1e3, "nonneg"),
+    "motor_torque_Nm": ("tm_max", 1.0, "nonneg"),
+    "beta_per_W": ("beta", 1.0, "pos"),
+    "engine_efficiency": ("eta_e", 1.0, "frac"),
+    "initial_soc": ("soc0", 1.0, "unit"),
+}
+# Checks of the raw VehicleParams fields (by their own names), from the vehicle file schema.
+_FIELD_CHECK = {field: kind for (field, _, kind) in _SCHEMA.values() if not field.startswith("_")}
+_FIELD_CHECK["has_motor"] = "unit"
+
+TOP_KEYS = {
+    "description": "free text, kept in the results directory",
+    "routes": "route files, globs or bundled route names (list)",
+    "vehicle": "bundled vehicle name or TOML file (default reference_truck)",
+    "strategies": "strategies to run (list)",
+    "grid": "table: parameter = [values]",
+    "batch_size": "grid points per chunk (default 16)",
+    "dt_s": "time step in s (default 1)",
+    "ds_m": "distance grid step of the routes in m (default 10)",
+    "precision": '"float32" (default) or "float64"',
+    "options": "table: strategy = {options passed to simulate_batch}",
+}
+
+
+class SweepError(ValueError):
+    """A bad sweep file, grid value, route, or results directory; the message names it."""
+
+
+# ------------------------------------------------------------------------------------ config
+@dataclasses.dataclass(frozen=True)
+class RouteEntry:
+    """A route of the sweep: display name, file, content hash and the loaded `Route`."""
+
+    name: str
+    path: Path
+    sha256: str
+    route: Route
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepConfig:
+    """A validated sweep: everything needed to plan and run it (see `load_config`)."""
+
+    source: Path
+    text: str
+    description: str
+    routes: tuple[RouteEntry, ...]
+    vehicle_spec: str
+    vehicle_sha256: str
+    vehicle: VehicleParams
+    strategies: tuple[str, ...]
+    grid: dict[str, tuple[float, ...]]  # user key -> values (user units), file order
+    batch_size: int
+    dt: float
+    ds: float
+    precision: str
+    options: dict[str, dict]
+
+    @property
+    def grid_size(self) -> int:
+        return math.prod(len(v) for v in self.grid.values())
+
+    def points(self) -> list[dict[str, float]]:
+        """The grid points in order (first key slowest), as {user key: value}."""
+        keys = list(self.grid)
+        combos = itertools.product(*self.grid.values())
+        return [dict(zip(keys, vals, strict=True)) for vals in combos]
+
+    def canonical(self) -> dict:
+        """What identifies the sweep's results: settings and route/vehicle contents, no paths."""
+        return {
+            "format": FORMAT_VERSION,
+            "routes": [{"name": r.name, "sha256": r.sha256} for r in self.routes],
+            "vehicle": {"name": Path(self.vehicle_spec).stem, "sha256": self.vehicle_sha256},
+            "strategies": list(self.strategies),
+            "grid": {k: list(v) for k, v in self.grid.items()},
+            "batch_size": self.batch_size,
+            "dt_s": self.dt,
+            "ds_m": self.ds,
+            "precision": self.precision,
+            "options": self.options,
+        }
+
+    def fingerprint(self) -> str:
+        blob = json.dumps(self.canonical(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def grid_field(key: str) -> tuple[str, float, str]:
+    """(VehicleParams field, scale to SI, check) of a grid key; `SweepError` if unknown."""
+    if key in GRID_KEYS:
+        return GRID_KEYS[key]
+    if key in VehicleParams._fields:
+        return key, 1.0, _FIELD_CHECK.get(key, "finite")
+    raise KeyError(key)
+
+
+def _check_value(x: Any, kind: str, where: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise SweepError(f"{where}: expected a number (got {x!r})")
+    x = float(x)
+    bad = {
+        "pos": x <= 0, "nonneg": x < 0, "frac": not 0 < x <= 1, "unit": not 0 <= x <= 1,
+        "finite": False,
+    }
+    if not math.isfinite(x):
+        raise SweepError(f"{where}: expected a finite number (got {x!r})")
+    if bad.get(kind, False):
+        need = {"pos": "> 0", "nonneg": ">= 0", "frac": "in (0, 1]", "unit": "in [0, 1]"}[kind]
+        raise SweepError(f"{where}: must be {need} (got {x:g})")
+    return x
+
+
+def _grid_values(spec: Any, where: str) -> list:
+    """A list of numbers, one number, or {start, stop, num} (evenly spaced, both ends)."""
+    if isinstance(spec, dict):
+        extra = set(spec) - {"start", "stop", "num"}
+        if extra or {"start", "stop", "num"} - set(spec):
+            raise SweepError(f"{where}: a range needs exactly start, stop and num "
+                             f"(got {sorted(spec)})")
+        num = spec["num"]
+        if isinstance(num, bool) or not isinstance(num, int) or num < 1:
+            raise SweepError(f"{where}.num: must be a whole number >= 1 (got {num!r})")
+        for k in ("start", "stop"):
+            if isinstance(spec[k], bool) or not isinstance(spec[k], int | float):
+                raise SweepError(f"{where}.{k}: expected a number (got {spec[k]!r})")
+        return [float(x) for x in np.linspace(spec["start"], spec["stop"], num)]
+    if isinstance(spec, list):
+        return spec
+    return [spec]
+
+
+def _resolve_routes(entries: Any, base: Path, where: str, ds: float) -> tuple[RouteEntry, ...]:
+    from .io import load_route, resolve_route, route_name
+
+    if isinstance(entries, str):
+        entries = [entries]
+    if not isinstance(entries, list) or not entries:
+        raise SweepError(f"{where}: routes must be a non-empty list of files, globs or names")
+    paths: list[Path] = []
+    for e in entries:
+        if not isinstance(e, str) or not e.strip():
+            raise SweepError(f"{where}: routes: expected a file, glob or name (got {e!r})")
+        pat = Path(e).expanduser()
+        if not pat.is_absolute():
+            pat = base / pat
+        if any(c in e for c in "*?["):
+            found = sorted(Path(p) for p in glob.glob(str(pat), recursive=True))
+            found = [p for p in found if p.is_file()]
+            if not found:
+                raise SweepError(f"{where}: routes: {e!r} matches no file")
+            paths.extend(found)
+        elif pat.exists():
+            paths.append(pat)
+        else:
+            try:
+                p = resolve_route(e)
+            except RouteError:
+                raise SweepError(f"{where}: routes: {e!r}: no such route file (not at {pat}, "
+                                 f"nor a bundled route)") from None
+            if not p.exists():
+                raise SweepError(f"{where}: routes: {e!r}: no such route file (looked at {pat})")
+            paths.append(p)
+    out: list[RouteEntry] = []
+    seen: dict[str, Path] = {}
+    for p in paths:
+        p = p.resolve()
+        name = route_name(p)
+        if name in seen:
+            if seen[name] == p:
+                continue  # listed twice (e.g. a name and a glob): once is enough
+            raise SweepError(f"{where}: routes: two route files named {name!r}: {seen[name]} and "
+                             f"{p}; rename one")
+        seen[name] = p
+        try:
+            route = load_route(p, ds=ds)
+        except RouteError as e:
+            raise SweepError(f"{where}: routes: {e}") from None
+        out.append(RouteEntry(name=name, path=p, sha256=_sha256(p), route=route))
+    return tuple(out)
+
+
+def load_config(path: str | Path) -> SweepConfig:
+    """Read and validate a sweep file; every problem is a `SweepError` naming the key/file.
+
+    Keys (top level of the TOML file):
+
+    - ``routes``: list of route files, globs (``**`` recursive; relative to the sweep file) or
+      bundled route names; every file is read and checked now.
+    - ``vehicle``: bundled vehicle name or TOML path (relative to the sweep file); default
+      ``reference_truck``.
+    - ``strategies``: list of `jaxems.strategies.STRATEGIES`.
+    - ``[grid]``: ``key = [values]`` (or one value, or ``{start, stop, num}``). Keys: see
+      `GRID_KEYS` (mass_kg, battery_MJ, motor_power_kW, motor_torque_Nm, beta_per_W,
+      engine_efficiency, initial_soc) or any scalar `VehicleParams` field by its own (SI) name.
+    - ``batch_size`` (16), ``dt_s`` (1.0), ``ds_m`` (10.0), ``precision`` ("float32"),
+      ``description``, ``[options.STRATEGY]`` (passed to `simulate_batch` as ``options``).
+    """
+    src = Path(path)
+    if not src.is_file():
+        raise SweepError(f"{path}: no such sweep file")
+    text = src.read_text(encoding="utf-8-sig")
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SweepError(f"{src}: not valid TOML: {e}") from None
+    unknown = [k for k in doc if k not in TOP_KEYS]
+    if unknown:
+        raise SweepError(f"{src}: unknown key {unknown[0]!r} (known keys: "
+                         f"{', '.join(TOP_KEYS)})")
+    base = src.resolve().parent
+
+    def number(key, default, kind, typ=float):
+        x = doc.get(key, default)
+        if typ is int and (isinstance(x, bool) or not isinstance(x, int)):
+            raise SweepError(f"{src}: {key}: expected a whole number (got {x!r})")
+        return typ(_check_value(x, kind, f"{src}: {key}"))
+
+    batch_size = number("batch_size", 16, "pos", int)
+    dt = number("dt_s", 1.0, "pos")
+    ds = number("ds_m", 10.0, "pos")
+    precision = doc.get("precision", "float32")
+    if precision not in ("float32", "float64"):
+        raise SweepError(f"{src}: precision: expected \"float32\" or \"float64\" "
+                         f"(got {precision!r})")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        raise SweepError(f"{src}: description: expected a string")
+
+    # strategies (validated against the strategies module)
+    from .strategies import STRATEGIES
+
+    strategies = doc.get("strategies")
+    if isinstance(strategies, str):
+        strategies = [strategies]
+    if not isinstance(strategies, list) or not strategies:
+        raise SweepError(f"{src}: strategies: expected a non-empty list (choose from "
+                         f"{', '.join(STRATEGIES)})")
+    for s in strategies:
+        if s not in STRATEGIES:
+            raise SweepError(f"{src}: strategies: unknown strategy {s!r} (choose from "
+                             f"{', '.join(STRATEGIES)})")
+    if len(set(strategies)) != len(strategies):
+        raise SweepError(f"{src}: strategies: listed twice: "
+                         f"{sorted({s for s in strategies if strategies.count(s) > 1})}")
+    options = doc.get("options", {})
+    if not isinstance(options, dict):
+        raise SweepError(f"{src}: options: expected a table of [options.STRATEGY] tables")
+    for k, v in options.items():
+        if k not in strategies:
+            raise SweepError(f"{src}: options.{k}: not one of the sweep's strategies "
+                             f"({', '.join(strategies)})")
+        if not isinstance(v, dict):
+            raise SweepError(f"{src}: options.{k}: expected a table")
+
+    # vehicle
+    vspec = doc.get("vehicle", "reference_truck")
+    if not isinstance(vspec, str):
+        raise SweepError(f"{src}: vehicle: expected a name or a file (got {vspec!r})")
+    vpath = Path(vspec).expanduser()
+    if vpath.suffix and not vpath.is_absolute():
+        vpath = base / vpath
+    try:
+        vehicle = load_vehicle(vpath if vpath.suffix else vspec)
+    except VehicleError as e:
+        raise SweepError(f"{src}: vehicle: {e}") from None
+    from .params import VEHICLE_DIR
+
+    vfile = vpath if vpath.suffix else VEHICLE_DIR / f"{vspec}.toml"
+
+    # grid
+    grid_doc = doc.get("grid")
+    if not isinstance(grid_doc, dict) or not grid_doc:
+        raise SweepError(f"{src}: grid: empty; give at least one parameter with values, e.g. "
+                         f"[grid] mass_kg = [20000, 40000]")
+    grid: dict[str, tuple[float, ...]] = {}
+    fields_seen: dict[str, str] = {}
+    for key, spec in grid_doc.items():
+        where = f"{src}: grid.{key}"
+        try:
+            field, _, kind = grid_field(key)
+        except KeyError:
+            raise SweepError(f"{where}: unknown grid key {key!r} (known: "
+                             f"{', '.join(GRID_KEYS)}, or a vehicle field: "
+                             f"{', '.join(VehicleParams._fields)})") from None
+        if np.ndim(getattr(vehicle, field)) != 0:
+            raise SweepError(f"{where}: {field} is a curve, not a number; it cannot be a grid "
+                             f"parameter")
+        if field in fields_seen:
+            raise SweepError(f"{where}: sets the same vehicle field ({field}) as "
+                             f"grid.{fields_seen[field]}")
+        fields_seen[field] = key
+        values = _grid_values(spec, where)
+        if not values:
+            raise SweepError(f"{where}: empty list of values")
+        vals = tuple(_check_value(x, kind, f"{where}[{i}]") for i, x in enumerate(values))
+        if len(set(vals)) != len(vals):
+            raise SweepError(f"{where}: a value is listed twice ({list(vals)})")
+        grid[key] = vals
+
+    routes = _resolve_routes(doc.get("routes"), base, str(src), ds)
+    return SweepConfig(
+        source=src, text=text, description=description, routes=routes,
+        vehicle_spec=str(vspec), vehicle_sha256=_sha256(vfile), vehicle=vehicle,
+        strategies=tuple(strategies), grid=grid, batch_size=batch_size, dt=dt, ds=ds,
+        precision=precision, options={k: dict(v) for k, v in options.items()},
+    )
+
+
+# ------------------------------------------------------------------------------------ chunks
+@dataclasses.dataclass(frozen=True)
+class Chunk:
+    """One unit of work: a route, a strategy and `batch_size` grid points (padded)."""
+
+    id: str
+    route_index: int
+    strategy: str
+    index: int  # chunk number within (route, strategy)
+    grid_index: tuple[int, ...]  # (batch_size,) grid point indices, padded by repetition
+    n_real: int  # the first n_real entries are real
+
+
+def _safe(name: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+def plan_chunks(cfg: SweepConfig) -> list[Chunk]:
+    """All chunks of a sweep, in execution order (route, strategy, grid chunk); ids stable."""
+    G, B = cfg.grid_size, cfg.batch_size
+    n_chunks = math.ceil(G / B)
+    out = []
+    for ri, r in enumerate(cfg.routes):
+        for s in cfg.strategies:
+            for c in range(n_chunks):
+                idx = list(range(c * B, min((c + 1) * B, G)))
+                n_real = len(idx)
+                idx += [idx[-1]] * (B - n_real)
+                out.append(Chunk(
+                    id=f"r{ri:04d}-{_safe(r.name)}--{s}--c{c:05d}", route_index=ri, strategy=s,
+                    index=c, grid_index=tuple(idx), n_real=n_real,
+                ))
+    return out
+
+
+def vehicle_batch(base: VehicleParams, points: Sequence[dict[str, float]]) -> VehicleParams:
+    """A batch of len(points) vehicles: every leaf gets a leading axis; grid values set (SI)."""
+    B = len(points)
+    leaves = {f: np.array(np.broadcast_to(np.asarray(x, np.float64), (B, *np.shape(x))))
+              for f, x in zip(VehicleParams._fields, base, strict=True)}
+    for key in points[0]:
+        field, scale, _ = grid_field(key)
+        leaves[field] = np.array([p[key] * scale for p in points], dtype=np.float64)
+    return VehicleParams(**leaves)
+
+
+@dataclasses.dataclass(frozen=True)
+class ChunkTask:
+    """What a worker needs for one chunk (plain arrays, picklable); the route goes separately."""
+
+    chunk: Chunk
+    vehicles: VehicleParams
+    dt: float
+    n_steps: int
+    precision: str
+    options: dict | None
+
+
+# Backend compilations seen by this process (a `jax.monitoring` listener; for the tests and the
+# chunk statistics: chunks after the first of a shape must not compile).
+_COMPILES = [0]
+_COMPILES_LOCK = threading.Lock()
+_LISTENING = [False]
+
+
+def _on_event(event: str, *args, **kwargs) -> None:
+    if event == "/jax/core/compile/backend_compile_duration":
+        with _COMPILES_LOCK:
+            _COMPILES[0] += 1
+
+
+def compile_count() -> int:
+    """Number of XLA backend compilations in this process since jaxems.sweep started counting."""
+    if not _LISTENING[0]:
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(_on_event)
+        _LISTENING[0] = True
+    return _COMPILES[0]
+
+
+@contextlib.contextmanager
+def precision_scope(precision: str):
+    """Run JAX in float32 or float64 inside the block (thread-local; restored afterwards)."""
+    import jax
+
+    with jax.enable_x64(precision == "float64"):
+        yield
+
+
+def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
+    """Evaluate one chunk: `simulate_batch` on its vehicle batch. Runs on any worker.
+
+    Returns {field: (n_real,) array} with the `RESULT_FIELDS`, ``status`` and ``wall_s`` (the
+    chunk's wall time per configuration), plus ``_compiles`` (backend compilations during the
+    chunk in this process) and ``_wall_s`` (the chunk's wall time). An exception inside the
+    strategy does not stop the sweep: every row of the chunk gets status ``error: ...``.
+    """
+    from .strategies import simulate_batch
+
+    c = task.chunk
+    n = c.n_real
+    c0 = compile_count()
+    t0 = time.perf_counter()
+    try:
+        with precision_scope(task.precision):
+            out = simulate_batch(route, task.vehicles, c.strategy, dt=task.dt,
+                                 n_steps=task.n_steps, options=task.options)
+        rows: dict[str, Any] = {}
+        for f in RESULT_FIELDS:
+            a = np.asarray(out[f])
+            if a.shape[:1] != (len(c.grid_index),):
+                raise ValueError(f"simulate_batch returned {f} of shape {a.shape}, expected "
+                                 f"({len(c.grid_index)},)")
+            rows[f] = a[:n].astype(np.int64 if f in INT_FIELDS else np.float64)
+        rows["status"] = np.array([str(s) for s in np.asarray(out["status"])[:n]], dtype=object)
+    except Exception as e:  # recorded per row; the sweep goes on
+        msg = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+        rows = {f: np.zeros(n, np.int64) if f in INT_FIELDS else np.full(n, np.nan)
+                for f in RESULT_FIELDS}
+        rows["length_m"] = np.full(n, float(np.asarray(route.length)))
+        rows["status"] = np.array([f"error: {msg}"] * n, dtype=object)
+    wall = time.perf_counter() - t0
+    rows["wall_s"] = np.full(n, wall / n)
+    rows["_compiles"] = compile_count() - c0
+    rows["_wall_s"] = wall
+    return rows
+
+
+def _compute_remote(task: ChunkTask, route: Route) -> dict[str, Any]:
+    """Dask task body (module-level so that workers import it by name)."""
+    return compute_chunk(task, route)
+
+
+def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],
+                    points: Sequence[dict]) -> int:
+    """Static step count shared by all chunks of a route: max over its grid (bucketed).
+
+    Evaluated chunk by chunk on the same padded batches as the simulation (same shapes, so one
+    Level 3 compilation per route shape).
+    """
+    from .strategies import steps_for_batch
+
+    seen: set[tuple[int, ...]] = set()
+    n = 0
+    with precision_scope(cfg.precision):
+        for c in chunks:
+            if c.grid_index in seen:
+                continue
+            seen.add(c.grid_index)
+            vb = vehicle_batch(cfg.vehicle, [points[i] for i in c.grid_index])
+            n = max(n, int(steps_for_batch(route, vb, cfg.dt)))
+    return n
+
+
+# ---------------------------------------------------------------------------- results dir
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{threading.get_ident()}")
+    with open(tmp, "wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def _atomic_write_table(path: Path, df) -> None:
+    import io
+
+    buf = io.BytesIO()
+    df.to_parquet(buf, index=False)
+    _atomic_write_bytes(path, buf.getvalue())
+
+
+def _describe_change(old: dict, new: dict) -> str:
+    keys = sorted(set(old) | set(new))
+    diff = [k for k in keys if old.get(k) != new.get(k)]
+    parts = []
+    for k in diff:
+        if k == "routes":
+            o = {r["name"]: r["sha256"] for r in old.get(k, [])}
+            n = {r["name"]: r["sha256"] for r in new.get(k, [])}
+            changed = sorted(x for x in set(o) & set(n) if o[x] != n[x])
+            added, gone = sorted(set(n) - set(o)), sorted(set(o) - set(n))
+            bits = ([f"added {', '.join(added)}"] if added else []) + (
+                [f"removed {', '.join(gone)}"] if gone else []) + (
+                [f"file content changed: {', '.join(changed)}"] if changed else [])
+            parts.append(f"routes ({'; '.join(bits) or 'order changed'})")
+        else:
+            parts.append(k)
+    return ", ".join(parts)
+
+
+def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
+    """Create the results directory or check that it holds this very sweep.
+
+    Raises `SweepError` if it holds a different sweep (naming what changed), holds results of
+    something that is not a jaxems sweep, or (``resume``) has nothing to resume.
+    """
+    meta_path = out / CONFIG_FILE
+    canon = cfg.canonical()
+    fp = cfg.fingerprint()
+    if meta_path.exists():
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as e:
+            raise SweepError(f"{meta_path}: unreadable sweep record ({e})") from None
+        if meta.get("fingerprint") != fp:
+            what = _describe_change(meta.get("canonical", {}), canon)
+            raise SweepError(
+                f"{out} holds the results of a different sweep (changed: {what}; recorded from "
+                f"{meta.get('source', '?')}); refusing to mix them. Use another --out directory, "
+                f"or delete {out} to start over"
+            )
+        return
+    if resume:
+        raise SweepError(f"{out}: nothing to resume (no {CONFIG_FILE}); run without --resume")
+    if (out / CHUNK_DIR).exists() or (out / RESULTS_FILE).exists():
+        raise SweepError(f"{out}: holds sweep results without {CONFIG_FILE}; refusing to mix "
+                         f"them; use another --out directory")
+    (out / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
+    _atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
+    meta = {"fingerprint": fp, "canonical": canon, "source": str(cfg.source),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    _atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
+
+
+def finished_chunks(out: Path) -> set[str]:
+    """Ids of the chunks with a complete file (temporary files of killed runs are ignored)."""
+    d = out / CHUNK_DIR
+    if not d.is_dir():
+        return set()
+    return {p.name[: -len(".parquet")] for p in d.iterdir()
+            if p.name.endswith(".parquet") and not p.name.startswith(".")}
+
+
+def _clean_temporaries(out: Path) -> None:
+    for p in (out / CHUNK_DIR).glob(".*.tmp-*"):
+        with contextlib.suppress(OSError):
+            p.unlink()
+
+
+def chunk_frame(cfg: SweepConfig, chunk: Chunk, rows: dict[str, Any], points):
+    """The rows of one finished chunk as a DataFrame (one row per real grid point)."""
+    import pandas as pd
+
+    n = chunk.n_real
+    idx = list(chunk.grid_index[:n])
+    cols: dict[str, Any] = {
+        "route": [cfg.routes[chunk.route_index].name] * n,
+        "strategy": [chunk.strategy] * n,
+        "grid_index": np.asarray(idx, np.int64),
+    }
+    for key in grid_columns(cfg):
+        cols[key] = np.array([points[i][key] for i in idx], np.float64)
+    for f in RESULT_FIELDS:
+        cols[f] = rows[f]
+    cols["status"] = [str(s) for s in rows["status"]]
+    cols["wall_s"] = rows["wall_s"]
+    cols["chunk"] = [chunk.id] * n
+    return pd.DataFrame(cols)
+
+
+def grid_columns(cfg: SweepConfig) -> list[str]:
+    """Grid value columns of the table: the grid keys, plus mass_kg and battery_MJ always."""
+    return list(cfg.grid) + [k for k in ("mass_kg", "battery_MJ") if k not in cfg.grid]
+
+
+def _full_points(cfg: SweepConfig) -> list[dict[str, float]]:
+    """Grid points with the always-present columns filled from the vehicle."""
+    fixed = {"mass_kg": float(cfg.vehicle.mass), "battery_MJ": float(cfg.vehicle.E_b_max) / 1e6}
+    return [{k: v for k, v in fixed.items() if k not in p} | p for p in cfg.points()]
+
+
+# --------------------------------------------------------------------------------- results
+def add_savings(df):
+    """Add fuel_corrected_J and saving_vs_{conventional,baseline}_pct (in place; returned).
+
+    fuel_corrected_J = fuel_J + lambda_b * delta_Eb_J (lambda_b < 0: energy left in the battery
+    is worth |lambda_b| J of fuel); 0 correction for strategies without a battery or without a
+    finite lambda_b. saving_vs_X_pct = 100 (F_X - F) / F_X with F the corrected fuel of the row
+    and F_X that of strategy X on the same route and grid point; NaN where X was not run or
+    either row's status is not "ok".
+    """
+    import pandas as pd
+
+    lam = df["lambda_b"].to_numpy(np.float64)
+    dE = df["delta_Eb_J"].to_numpy(np.float64)
+    corr = np.where(np.isfinite(lam) & np.isfinite(dE) & ~df["strategy"].isin(NO_BATTERY),
+                    lam * dE, 0.0)
+    df["fuel_corrected_J"] = df["fuel_J"].to_numpy(np.float64) + corr
+    ok = df["status"] == "ok"
+    fuel = df["fuel_corrected_J"].where(ok)
+    for ref in REFERENCES:
+        refs = df.loc[(df["strategy"] == ref) & ok, ["route", "grid_index", "fuel_corrected_J"]]
+        refs = refs.rename(columns={"fuel_corrected_J": "_ref"})
+        merged = pd.merge(df[["route", "grid_index"]], refs, on=["route", "grid_index"],
+                          how="left")
+        f_ref = merged["_ref"].to_numpy(np.float64)
+        df[f"saving_vs_{ref}_pct"] = 100.0 * (f_ref - fuel.to_numpy(np.float64)) / f_ref
+    return df
+
+
+def assemble(out: Path, cfg_canonical: dict | None = None):
+    """All finished chunk rows of a results directory, ordered, with the savings columns.
+
+    Rows are sorted by (route order, grid_index, strategy order) of the sweep file; chunk files
+    of other sweeps are never present (the directory is refused first).
+    """
+    import pandas as pd
+
+    out = Path(out)
+    if cfg_canonical is None:
+        cfg_canonical = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))["canonical"]
+    files = sorted((out / CHUNK_DIR).glob("*.parquet"))
+    files = [p for p in files if not p.name.startswith(".")]
+    if not files:
+        raise SweepError(f"{out}: no finished chunks yet")
+    df = pd.concat([pd.read_parquet(p) for p in files], ignore_index=True)
+    r_order = {r["name"]: i for i, r in enumerate(cfg_canonical["routes"])}
+    s_order = {s: i for i, s in enumerate(cfg_canonical["strategies"])}
+    df = df.assign(_r=df["route"].map(r_order), _s=df["strategy"].map(s_order))
+    df = df.sort_values(["_r", "grid_index", "_s"], kind="stable").drop(columns=["_r", "_s"])
+    df = df.reset_index(drop=True)
+    return add_savings(df)
+
+
+def load_sweep(directory: str | Path):
+    """The results of a sweep directory as a pandas DataFrame, one row per (route, grid point,
+    strategy).
+
+    Columns: route, strategy, grid_index, the grid values (user units; mass_kg and battery_MJ
+    always), the fields of ``jaxems simulate --json`` (length_m, trip_time_s, fuel_J,
+    fuel_l_per_100km, delta_Eb_J, Eb_min_J, Eb_max_J, mode_switches, gear_switches, lambda_b,
+    max_speed_shortfall_mps, status), wall_s (wall time per configuration), chunk (its chunk id),
+    fuel_corrected_J, saving_vs_conventional_pct and saving_vs_baseline_pct (see `add_savings`).
+    Reads ``results.parquet`` when it is up to date, otherwise merges the finished chunks (an
+    unfinished sweep gives the rows computed so far).
+    """
+    import pandas as pd
+
+    d = Path(directory)
+    if not (d / CONFIG_FILE).exists():
+        raise SweepError(f"{d}: not a jaxems sweep directory (no {CONFIG_FILE})")
+    res = d / RESULTS_FILE
+    chunks = [p for p in (d / CHUNK_DIR).glob("*.parquet") if not p.name.startswith(".")]
+    if res.exists():
+        newest = max((p.stat().st_mtime for p in chunks), default=0.0)
+        if res.stat().st_mtime >= newest:
+            return pd.read_parquet(res)
+    return assemble(d)
+
+
+# ------------------------------------------------------------------------------- execution
+@dataclasses.dataclass
+class SweepSummary:
+    """What a sweep run did (returned by `run_sweep`, printed at the end)."""
+
+    out: Path
+    n_configs: int
+    n_chunks: int
+    computed_chunks: int
+    skipped_chunks: int
+    computed_configs: int
+    wall_s: float
+    status_counts: dict[str, int]
+    chunk_stats: list[dict]  # per computed chunk: id, strategy, route, compiles, wall_s
+    results: Path | None
+    report: Path | None
+    backend: str
+
+    def text(self) -> str:
+        """Human-readable summary (a few lines)."""
+        rate = self.computed_configs / self.wall_s if self.wall_s > 0 else float("nan")
+        st = ", ".join(f"{k} {v}" for k, v in sorted(self.status_counts.items()))
+        lines = [
+            f"jaxems sweep: {self.n_configs} configurations in {self.n_chunks} chunks "
+            f"({self.backend})",
+            f"  computed {self.computed_configs} configurations ({self.computed_chunks} chunks) "
+            f"in {self.wall_s:.1f} s ({rate:.2f} configurations/s); "
+            f"{self.skipped_chunks} chunks already done",
+            f"  status: {st or 'no rows'}",
+        ]
+        if self.results:
+            lines.append(f"  results: {self.results}")
+        if self.report:
+            lines.append(f"  report:  {self.report}")
+        return "\n".join(lines)
+
+
+def default_out(sweep_file: str | Path) -> Path:
+    """Default results directory: ``sweeps/<sweep file stem>`` in the current directory."""
+    return Path("sweeps") / Path(sweep_file).stem
+
+
+def _progress(total: int, initial: int, quiet: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="cfg", desc="sweep", file=sys.stderr,
+                disable=quiet, dynamic_ncols=True, smoothing=0.1, mininterval=0.5)
+
+
+def _executor(workers: int | None, scheduler: str | None):
+    """A Dask client (and the cluster it started) or (None, None) for in-process runs."""
+    if workers is None and scheduler is None:
+        return None, None
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise SweepError("--workers and --scheduler need Dask distributed: "
+                         "pip install 'jaxems[distributed]'") from None
+    if scheduler is not None:
+        try:
+            return Client(scheduler, timeout=30), None
+        except (OSError, TimeoutError) as e:
+            raise SweepError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
+    if workers is None or workers < 1:
+        raise SweepError(f"--workers: expected a whole number >= 1 (got {workers})")
+    cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                           dashboard_address=None)
+    return Client(cluster), cluster
+
+
+def run_sweep(
+    sweep_file: str | Path,
+    out: str | Path | None = None,
+    *,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    resume: bool = False,
+    quiet: bool = False,
+    report: bool = True,
+    client=None,
+    on_chunk: Callable[[Chunk], None] | None = None,
+) -> SweepSummary:
+    """Run (or resume) a sweep; returns a `SweepSummary`. See the module docstring.
+
+    sweep_file: the TOML file (validated completely before any computation); out: results
+    directory (default `default_out`); workers: start a local Dask cluster of this many
+    processes; scheduler: address of a running Dask scheduler; client: an existing
+    `dask.distributed.Client` to use instead; resume: require an existing directory of this
+    sweep; quiet: no progress bar; report: write the report at the end; on_chunk: called after
+    each chunk file is written (tests).
+    """
+    if workers is not None and scheduler is not None:
+        raise SweepError("give either --workers or --scheduler, not both")
+    cfg = load_config(sweep_file)
+    out = Path(out) if out is not None else default_out(sweep_file)
+    prepare_dir(cfg, out, resume=resume)
+    _clean_temporaries(out)
+    chunks = plan_chunks(cfg)
+    points = _full_points(cfg)
+    done = finished_chunks(out)
+    todo = [c for c in chunks if c.id not in done]
+    skipped = len(chunks) - len(todo)
+    n_configs = cfg.grid_size * len(cfg.routes) * len(cfg.strategies)
+    initial = sum(c.n_real for c in chunks if c.id in done)
+
+    t0 = time.perf_counter()
+    stats: list[dict] = []
+    own_client = None
+    cluster = None
+    if client is None:
+        own_client, cluster = _executor(workers, scheduler)
+        client = own_client
+    backend = "in-process" if client is None else (
+        f"Dask, {len(client.scheduler_info().get('workers', {}))} workers")
+    bar = _progress(n_configs, initial, quiet)
+    try:
+        steps: dict[int, int] = {}
+        for ri in sorted({c.route_index for c in todo}):
+            route_chunks = [c for c in chunks if c.route_index == ri]
+            steps[ri] = steps_for_route(cfg, cfg.routes[ri].route, route_chunks, points)
+
+        def task_of(c: Chunk) -> ChunkTask:
+            vb = vehicle_batch(cfg.vehicle, [points[i] for i in c.grid_index])
+            return ChunkTask(chunk=c, vehicles=vb, dt=cfg.dt, n_steps=steps[c.route_index],
+                             precision=cfg.precision, options=cfg.options.get(c.strategy))
+
+        def finish(c: Chunk, rows: dict) -> None:
+            df = chunk_frame(cfg, c, rows, points)
+            _atomic_write_table(out / CHUNK_DIR / f"{c.id}.parquet", df)
+            stats.append({"id": c.id, "route": cfg.routes[c.route_index].name,
+                          "strategy": c.strategy, "compiles": int(rows["_compiles"]),
+                          "wall_s": float(rows["_wall_s"])})
+            bar.update(c.n_real)
+            if on_chunk is not None:
+                on_chunk(c)
+
+        if client is None:
+            for c in todo:
+                finish(c, compute_chunk(task_of(c), cfg.routes[c.route_index].route))
+        else:
+            from dask.distributed import as_completed
+
+            route_futs = {ri: client.scatter(cfg.routes[ri].route, broadcast=False)
+                          for ri in steps}
+            futs = {}
+            for c in todo:
+                f = client.submit(_compute_remote, task_of(c), route_futs[c.route_index],
+                                  key=f"jaxems-{cfg.fingerprint()[:12]}-{c.id}", pure=False)
+                futs[f] = c
+            for f in as_completed(futs):
+                finish(futs[f], f.result())
+    finally:
+        bar.close()
+        if own_client is not None:
+            own_client.close()
+        if cluster is not None:
+            cluster.close()
+    wall = time.perf_counter() - t0
+
+    df = assemble(out, cfg.canonical())
+    res_path = out / RESULTS_FILE
+    _atomic_write_table(res_path, df)
+    report_path = None
+    if report:
+        from .report import write_report
+
+        report_path = write_report(out, df=df)
+    counts = df["status"].value_counts().to_dict()
+    return SweepSummary(
+        out=out, n_configs=n_configs, n_chunks=len(chunks), computed_chunks=len(todo),
+        skipped_chunks=skipped, computed_configs=sum(c.n_real for c in todo), wall_s=wall,
+        status_counts={str(k): int(v) for k, v in counts.items()}, chunk_stats=stats,
+        results=res_path, report=report_path, backend=backend,
+    )
+
+
+# -------------------------------------------------------------------------------------- CLI
+def cmd_sweep(args) -> int:
+    """`jaxems sweep`: run a fleet sweep (routes x grid x strategies) into a directory."""
+    summary = run_sweep(args.sweep_file, args.out, workers=args.workers,
+                        scheduler=args.scheduler, resume=args.resume, quiet=args.quiet,
+                        report=not args.no_report)
+    print(summary.text())
+    return 0
+
+
+def _add_sweep_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("sweep_file", metavar="SWEEP.toml", help="the sweep file")
+    p.add_argument("--out", metavar="DIR", default=None,
+                   help="results directory (default sweeps/<sweep file name>)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=int, metavar="N", default=None,
+                   help="start a local Dask cluster of N worker processes")
+    g.add_argument("--scheduler", metavar="ADDRESS", default=None,
+                   help="send chunks to a running Dask scheduler (tcp://HOST:PORT)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue an interrupted sweep in DIR (a plain rerun does the same)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--no-report", action="store_true", help="do not write report.html")
+    p.set_defaults(func=cmd_sweep)
+
+
+def register_sweep(sub) -> None:
+    """Add the ``sweep`` subcommand to an argparse subparsers object (`jaxems.cli`)."""
+    p = sub.add_parser(
+        "sweep", help="fleet sweep: routes x vehicle grid x strategies -> Parquet + report",
+        description=cmd_sweep.__doc__ + " The sweep file format is in the README.",
+    )
+    _add_sweep_args(p)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m jaxems.sweep SWEEP.toml [...]``: the sweep subcommand on its own."""
+    parser = argparse.ArgumentParser(prog="python -m jaxems.sweep", description=cmd_sweep.__doc__)
+    _add_sweep_args(parser)
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (RouteError, VehicleError, SweepError, ValueError, OSError) as e:
+        print(f"jaxems: error: {' '.join(str(e).split())}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
