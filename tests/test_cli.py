@@ -1,0 +1,114 @@
+"""Command line: route and predict subcommands, JSON output, one-line errors; the experiment."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jaxems.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_route_json(capsys):
+    code, out, err = run(capsys, "route", "short_track", "--json")
+    assert code == 0 and err == ""
+    d = json.loads(out)
+    assert d["route"] == "short_track" and d["length_m"] == 1055.0
+    assert d["duration_s"] == pytest.approx(1055 / (25 / 3.6), rel=1e-9)
+    assert d["gradient_min_pct"] == pytest.approx(-12) and d["gradient_max_pct"] == pytest.approx(12)
+    assert d["stops"] == 0 and d["stop_time_s"] == 0
+
+
+def test_route_text_and_vdri_file(capsys):
+    path = ROOT / "data/routes/vecto-3.0.1/RegionalDelivery.vdri"
+    code, out, _ = run(capsys, "route", str(path))
+    assert code == 0
+    assert "25.836 km" in out and "6 (114 s standing)" in out
+
+
+def test_predict_json_mass_and_csv(capsys, tmp_path):
+    code, out, _ = run(capsys, "predict", "short_track", "--mass", "25000", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert d["mass_kg"] == 25000.0 and d["feasible"] is True
+    assert d["P_d_max_kW"] == pytest.approx(210.8, abs=0.1)
+    heavier = json.loads(run(capsys, "predict", "short_track", "--mass", "40000", "--json")[1])
+    assert heavier["energy_traction_MJ"] > d["energy_traction_MJ"]
+    csv = tmp_path / "ts.csv"
+    code, out, _ = run(capsys, "predict", "short_track", "--csv", str(csv))
+    assert code == 0 and "trip time" in out
+    lines = csv.read_text().splitlines()
+    assert lines[0] == "t_s,s_m,v_m_s,a_m_s2,grade,P_d_W" and len(lines) == 1 + 152
+
+
+def test_predict_vehicle_file(capsys, tmp_path):
+    toml = (ROOT / "data/vehicles/reference_truck.toml").read_text()
+    p = tmp_path / "light.toml"
+    p.write_text(toml.replace("mass_kg = 20000.0", "mass_kg = 12000.0"))
+    d = json.loads(run(capsys, "predict", "short_track", "--vehicle", str(p), "--json")[1])
+    assert d["mass_kg"] == 12000.0
+
+
+@pytest.mark.parametrize(
+    "argv,words",
+    [
+        (["route", "{tmp}/bad.vdri"], "line 3, column <v>: not a number"),
+        (["predict", "{tmp}/missing.vdri"], "no such file"),
+        (["predict", "no_such_route"], "no such route file"),
+        (["predict", "short_track", "--mass", "-5"], "mass_kg: must be a positive"),
+        (["predict", "short_track", "--vehicle", "nope"], "no such vehicle file"),
+        (["predict", "short_track", "--vehicle", "{tmp}/v.toml"], "vehicle.mass_kg: missing"),
+        (["route", "{tmp}/empty.csv"], "empty file"),
+    ],
+)
+def test_errors_are_one_line(capsys, tmp_path, argv, words):
+    (tmp_path / "bad.vdri").write_text("<s>,<v>,<grad>,<stop>\n0,50,0,0\n100,x,0,0\n")
+    (tmp_path / "empty.csv").write_text("")
+    (tmp_path / "v.toml").write_text("[vehicle]\nair_density_kg_m3 = 1.2\n")
+    code, out, err = run(capsys, *[a.replace("{tmp}", str(tmp_path)) for a in argv])
+    assert code != 0 and out == ""
+    assert err.count("\n") == 1 and err.startswith("jaxems: error: ")
+    assert words in err
+    assert "Traceback" not in err
+
+
+def test_usage_errors_exit_2(capsys):
+    with pytest.raises(SystemExit) as e:
+        main([])
+    assert e.value.code == 2
+    with pytest.raises(SystemExit) as e:
+        main(["predict"])
+    assert e.value.code == 2
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert {"route", "predict"} <= set(sub.choices)
+
+
+def test_python_dash_m_and_experiment():
+    r = subprocess.run([sys.executable, "-m", "jaxems", "route", "short_track", "--json"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["length_m"] == 1055.0
+    r = subprocess.run([sys.executable, "experiments/level3_short_track.py", "--json"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    seg = json.loads(r.stdout)["segments"]
+    assert [s["slope_pct"] for s in seg] == [6, -12, 12, -6]
+    for s, paper in zip(seg, (113, -192, 215, -90), strict=True):
+        assert abs(s["P_d_kW"] - paper) <= 0.05 * abs(paper)
+
+
+def test_demo_runs(tmp_path):
+    from jaxems import demo
+
+    assert demo.main(["--out", str(tmp_path)]) == 0
+    pngs = sorted(p.name for p in tmp_path.glob("*.png"))
+    assert "level3_short_track.png" in pngs and len(pngs) == 4
