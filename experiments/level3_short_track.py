@@ -62,18 +62,23 @@ def main(argv=None) -> int:
         print(json.dumps({"segments": segments}))
         return 0
     v = 25.0 * KMH
-    print(f"Level 3 on {args.route}: {args.mass / 1000:g} t at 25 km/h, "
-          f"w_pred = {float(vp.w_pred) * 60 / (2 * np.pi):.0f} rpm")
+    print(
+        f"Level 3 on {args.route}: {args.mass / 1000:g} t at 25 km/h, "
+        f"w_pred = {float(vp.w_pred) * 60 / (2 * np.pi):.0f} rpm"
+    )
     print(f"{'slope %':>8} {'P_d kW':>8} {'paper kW':>9} {'dev %':>6} {'road load kW':>13}")
     for seg in segments:
         slope = seg["slope_pct"]
         alpha = np.arctan(slope / 100)
-        f0 = (0.5 * vp.c_w * vp.area * vp.rho * v * v
-              + vp.mass * vp.g * (vp.c_r * np.cos(alpha) + np.sin(alpha)))
+        f0 = 0.5 * vp.c_w * vp.area * vp.rho * v * v + vp.mass * vp.g * (
+            vp.c_r * np.cos(alpha) + np.sin(alpha)
+        )
         paper = PAPER_KW.get(slope, float("nan"))
         dev = (seg["P_d_kW"] - paper) / abs(paper) * 100
-        print(f"{slope:>+8.1f} {seg['P_d_kW']:>+8.1f} {paper:>+9.0f} {dev:>+6.1f} "
-              f"{float(f0 * v) / 1e3:>+13.1f}")
+        print(
+            f"{slope:>+8.1f} {seg['P_d_kW']:>+8.1f} {paper:>+9.0f} {dev:>+6.1f} "
+            f"{float(f0 * v) / 1e3:>+13.1f}"
+        )
     print(f"{'flat':>8} {flat:>+8.1f} {11.0:>+9.0f}")
     print(f"trip time {float(pred.trip_time):.1f} s, feasible: {bool(pred.feasible)}")
     return 0

@@ -86,24 +86,37 @@ def cmd_route(args) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    _print_table([
-        ("route", f"{name} ({path})"),
-        ("length", f"{out['length_m'] / 1000:.3f} km"),
-        ("duration", f"{trip:.1f} s at the predicted speed ({out['mean_speed_km_h']:.1f} km/h)"),
-        ("gradient", f"{out['gradient_min_pct']:+.2f} % .. {out['gradient_max_pct']:+.2f} %"),
-        ("speed limit", f"{out['speed_limit_min_km_h']:.1f} .. "
-                        f"{out['speed_limit_max_km_h']:.1f} km/h"),
-        ("stops", f"{out['stops']} ({out['stop_time_s']:.0f} s standing)"),
-        ("start / end", f"{'standstill' if out['starts_stopped'] else 'flying'} / "
-                        f"{'standstill' if out['ends_stopped'] else 'free'}"),
-        ("grid", f"{out['nodes']} nodes, ds = {out['ds_m']:.3f} m"),
-    ])
+    _print_table(
+        [
+            ("route", f"{name} ({path})"),
+            ("length", f"{out['length_m'] / 1000:.3f} km"),
+            (
+                "duration",
+                f"{trip:.1f} s at the predicted speed ({out['mean_speed_km_h']:.1f} km/h)",
+            ),
+            ("gradient", f"{out['gradient_min_pct']:+.2f} % .. {out['gradient_max_pct']:+.2f} %"),
+            (
+                "speed limit",
+                f"{out['speed_limit_min_km_h']:.1f} .. {out['speed_limit_max_km_h']:.1f} km/h",
+            ),
+            ("stops", f"{out['stops']} ({out['stop_time_s']:.0f} s standing)"),
+            (
+                "start / end",
+                f"{'standstill' if out['starts_stopped'] else 'flying'} / "
+                f"{'standstill' if out['ends_stopped'] else 'free'}",
+            ),
+            ("grid", f"{out['nodes']} nodes, ds = {out['ds_m']:.3f} m"),
+        ]
+    )
     return 0
 
 
 def register_route(sub) -> None:
-    p = sub.add_parser("route", help="facts of a route: length, duration, gradients, stops",
-                       description=cmd_route.__doc__)
+    p = sub.add_parser(
+        "route",
+        help="facts of a route: length, duration, gradients, stops",
+        description=cmd_route.__doc__,
+    )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
     p.add_argument("--ds", type=float, default=10.0, help="distance grid step in m (default 10)")
@@ -122,8 +135,13 @@ def cmd_predict(args) -> int:
     name, path, route = _load(args)
     vp = _load_vehicle(args)
     pred = predict_velocity(route, vp, dt=args.dt)
-    out = {"route": name, "file": str(path), "vehicle": str(args.vehicle),
-           "mass_kg": float(vp.mass), "dt_s": args.dt} | energy_summary(pred)
+    out = {
+        "route": name,
+        "file": str(path),
+        "vehicle": str(args.vehicle),
+        "mass_kg": float(vp.mass),
+        "dt_s": args.dt,
+    } | energy_summary(pred)
     if args.csv:
         m = np.asarray(pred.mask)
         cols = [np.asarray(x)[m] for x in (pred.t, pred.s, pred.v, pred.a, pred.grade, pred.P_d)]
@@ -134,22 +152,31 @@ def cmd_predict(args) -> int:
     if args.json:
         print(json.dumps(out))
         return 0
-    _print_table([
-        ("route", f"{name} ({path})"),
-        ("vehicle", f"{args.vehicle}, {out['mass_kg']:.0f} kg"),
-        ("trip time", f"{out['trip_time_s']:.1f} s ({out['steps']} steps of {args.dt:g} s)"),
-        ("mean speed", f"{out['mean_speed_km_h']:.2f} km/h over {out['length_m'] / 1000:.3f} km"),
-        ("traction energy", f"{out['energy_traction_MJ']:.2f} MJ"),
-        ("braking energy", f"{out['energy_braking_MJ']:.2f} MJ"),
-        ("P_d range", f"{out['P_d_min_kW']:.1f} .. {out['P_d_max_kW']:.1f} kW"),
-        ("feasible", "yes" if out["feasible"] else "NO: the truck cannot climb (crawl floor)"),
-    ] + ([("time series", args.csv)] if args.csv else []))
+    _print_table(
+        [
+            ("route", f"{name} ({path})"),
+            ("vehicle", f"{args.vehicle}, {out['mass_kg']:.0f} kg"),
+            ("trip time", f"{out['trip_time_s']:.1f} s ({out['steps']} steps of {args.dt:g} s)"),
+            (
+                "mean speed",
+                f"{out['mean_speed_km_h']:.2f} km/h over {out['length_m'] / 1000:.3f} km",
+            ),
+            ("traction energy", f"{out['energy_traction_MJ']:.2f} MJ"),
+            ("braking energy", f"{out['energy_braking_MJ']:.2f} MJ"),
+            ("P_d range", f"{out['P_d_min_kW']:.1f} .. {out['P_d_max_kW']:.1f} kW"),
+            ("feasible", "yes" if out["feasible"] else "NO: the truck cannot climb (crawl floor)"),
+        ]
+        + ([("time series", args.csv)] if args.csv else [])
+    )
     return 0
 
 
 def register_predict(sub) -> None:
-    p = sub.add_parser("predict", help="Level 3 velocity and power-demand prediction",
-                       description=cmd_predict.__doc__)
+    p = sub.add_parser(
+        "predict",
+        help="Level 3 velocity and power-demand prediction",
+        description=cmd_predict.__doc__,
+    )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
     p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
@@ -160,10 +187,19 @@ def register_predict(sub) -> None:
 
 
 def _common_vehicle(p) -> None:
-    p.add_argument("--vehicle", default="reference_truck", metavar="NAME|PATH",
-                   help="bundled vehicle name or TOML file (default reference_truck)")
-    p.add_argument("--mass", type=float, default=None, metavar="KG",
-                   help="vehicle mass in kg (overrides the vehicle file)")
+    p.add_argument(
+        "--vehicle",
+        default="reference_truck",
+        metavar="NAME|PATH",
+        help="bundled vehicle name or TOML file (default reference_truck)",
+    )
+    p.add_argument(
+        "--mass",
+        type=float,
+        default=None,
+        metavar="KG",
+        help="vehicle mass in kg (overrides the vehicle file)",
+    )
 
 
 # --------------------------------------------------------------------------------- main

@@ -77,25 +77,33 @@ def main(argv=None) -> int:
     pred = predict_batch(routes, vp)
     jax.block_until_ready(pred)
     t_pred = time.perf_counter() - t0
-    print(f"jaxems demo: Level 3 velocity prediction, {args.vehicle} "
-          f"({float(vp.mass) / 1000:g} t, v0 = {float(vp.v_cruise) * 3.6:g} km/h)")
-    head = (f"{'route':<18} {'km':>7} {'trip s':>7} {'km/h':>6} {'grad %':>13} {'stops':>9} "
-            f"{'E+ MJ':>7} {'E- MJ':>7} {'ok':>3}")
+    print(
+        f"jaxems demo: Level 3 velocity prediction, {args.vehicle} "
+        f"({float(vp.mass) / 1000:g} t, v0 = {float(vp.v_cruise) * 3.6:g} km/h)"
+    )
+    head = (
+        f"{'route':<18} {'km':>7} {'trip s':>7} {'km/h':>6} {'grad %':>13} {'stops':>9} "
+        f"{'E+ MJ':>7} {'E- MJ':>7} {'ok':>3}"
+    )
     print(head)
     print("-" * len(head))
     for b, name in enumerate(names):
         p = _member(pred, b)
         info = route_summary(routes[b])
         e = energy_summary(p)
-        print(f"{name:<18} {info['length_m'] / 1e3:>7.2f} {e['trip_time_s']:>7.0f} "
-              f"{e['mean_speed_km_h']:>6.1f} "
-              f"{info['gradient_min_pct']:>+6.1f}..{info['gradient_max_pct']:<+5.1f} "
-              f"{info['stops']:>3} {info['stop_time_s']:>4.0f}s "
-              f"{e['energy_traction_MJ']:>7.1f} {e['energy_braking_MJ']:>7.1f} "
-              f"{'yes' if e['feasible'] else 'NO':>3}")
+        print(
+            f"{name:<18} {info['length_m'] / 1e3:>7.2f} {e['trip_time_s']:>7.0f} "
+            f"{e['mean_speed_km_h']:>6.1f} "
+            f"{info['gradient_min_pct']:>+6.1f}..{info['gradient_max_pct']:<+5.1f} "
+            f"{info['stops']:>3} {info['stop_time_s']:>4.0f}s "
+            f"{e['energy_traction_MJ']:>7.1f} {e['energy_braking_MJ']:>7.1f} "
+            f"{'yes' if e['feasible'] else 'NO':>3}"
+        )
         plot_prediction(out / f"level3_{name}.png", name, routes[b], p)
-    print(f"E+ traction energy, E- braking energy at the wheels (sum of P_d dt). "
-          f"Level 3 for {len(names)} routes in {t_pred:.1f} s (one vmap); plots in {out}/")
+    print(
+        f"E+ traction energy, E- braking energy at the wheels (sum of P_d dt). "
+        f"Level 3 for {len(names)} routes in {t_pred:.1f} s (one vmap); plots in {out}/"
+    )
     return 0
 
 

@@ -114,7 +114,9 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
                 f"+-{GRADE_MAX_PCT:g} %"
             )
         if r.stop_s < 0:
-            raise RouteError(f"{_where(source, r.line, c_stop)}: negative stop time ({r.stop_s:g} s)")
+            raise RouteError(
+                f"{_where(source, r.line, c_stop)}: negative stop time ({r.stop_s:g} s)"
+            )
         if r.v_kmh == 0 and r.stop_s == 0:
             raise RouteError(
                 f"{_where(source, r.line, c_stop)}: a stop (speed 0) with no duration; give the "
@@ -148,8 +150,9 @@ def route_from_rows(
     bucket: pad the node count up to a multiple of this (None: no padding).
     """
     if not (isinstance(ds, int | float) and DS_RANGE[0] <= ds <= DS_RANGE[1]):
-        raise RouteError(f"{source}: ds must be a number from {DS_RANGE[0]:g} to {DS_RANGE[1]:g} m "
-                         f"(got {ds!r})")
+        raise RouteError(
+            f"{source}: ds must be a number from {DS_RANGE[0]:g} to {DS_RANGE[1]:g} m (got {ds!r})"
+        )
     check_rows(rows, source, cols)
     s_rows = np.array([r.s_m for r in rows], dtype=np.float64)
     s_rows = s_rows - s_rows[0]

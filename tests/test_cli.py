@@ -24,7 +24,8 @@ def test_route_json(capsys):
     d = json.loads(out)
     assert d["route"] == "short_track" and d["length_m"] == 1055.0
     assert d["duration_s"] == pytest.approx(1055 / (25 / 3.6), rel=1e-9)
-    assert d["gradient_min_pct"] == pytest.approx(-12) and d["gradient_max_pct"] == pytest.approx(12)
+    assert d["gradient_min_pct"] == pytest.approx(-12)
+    assert d["gradient_max_pct"] == pytest.approx(12)
     assert d["stops"] == 0 and d["stop_time_s"] == 0
 
 
@@ -93,12 +94,22 @@ def test_usage_errors_exit_2(capsys):
 
 
 def test_python_dash_m_and_experiment():
-    r = subprocess.run([sys.executable, "-m", "jaxems", "route", "short_track", "--json"],
-                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "-m", "jaxems", "route", "short_track", "--json"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["length_m"] == 1055.0
-    r = subprocess.run([sys.executable, "experiments/level3_short_track.py", "--json"],
-                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    r = subprocess.run(
+        [sys.executable, "experiments/level3_short_track.py", "--json"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=120,
+    )
     assert r.returncode == 0, r.stderr
     seg = json.loads(r.stdout)["segments"]
     assert [s["slope_pct"] for s in seg] == [6, -12, 12, -6]

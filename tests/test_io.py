@@ -5,7 +5,7 @@ import pytest
 
 from jaxems.io import ROUTE_DIR, list_routes, load_route, read_csv, read_vdri, route_name
 from jaxems.io.csv import write_csv
-from jaxems.route import Row, RouteError, elevation, n_nodes, route_summary
+from jaxems.route import RouteError, Row, elevation, n_nodes, route_summary
 
 VECTO = ROUTE_DIR / "vecto-3.0.1"
 VDRI_TEXT = (
@@ -120,14 +120,24 @@ BAD = [
     ("empty cell", "<s>,<v>,<grad>,<stop>\n0,50,,0\n100,50,0,0\n", 2, "<grad>", "not a number"),
     ("short row", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n100,50\n", 3, None, "3 values|2 values"),
     ("same distance", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n0,50,0,0\n", 3, "<s>", "not increasing"),
-    ("going back", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n90,50,0,0\n80,50,0,0\n", 4, "<s>",
-     "not increasing"),
+    (
+        "going back",
+        "<s>,<v>,<grad>,<stop>\n0,50,0,0\n90,50,0,0\n80,50,0,0\n",
+        4,
+        "<s>",
+        "not increasing",
+    ),
     ("negative speed", "<s>,<v>,<grad>,<stop>\n0,-1,0,0\n100,50,0,0\n", 2, "<v>", "negative"),
     ("too fast", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n100,250,0,0\n", 3, "<v>", "above 200"),
     ("steep", "<s>,<v>,<grad>,<stop>\n0,50,35,0\n100,50,0,0\n", 2, "<grad>", "beyond"),
     ("steep down", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n100,50,-30.01,0\n", 3, "<grad>", "beyond"),
-    ("stop no duration", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n50,0,0,0\n100,50,0,0\n", 3,
-     "<stop>", "no duration"),
+    (
+        "stop no duration",
+        "<s>,<v>,<grad>,<stop>\n0,50,0,0\n50,0,0,0\n100,50,0,0\n",
+        3,
+        "<stop>",
+        "no duration",
+    ),
     ("negative stop", "<s>,<v>,<grad>,<stop>\n0,0,0,-3\n100,50,0,0\n", 2, "<stop>", "negative"),
 ]
 

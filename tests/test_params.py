@@ -83,8 +83,13 @@ def test_load_by_path_equals_load_by_name(tmp_path):
 
 @pytest.mark.parametrize(
     "section,key",
-    [("vehicle", "mass_kg"), ("engine", "max_torque_Nm"), ("battery", "capacity_J"),
-     ("driving", "prediction_engine_speed_rpm"), ("gearbox", "gears")],
+    [
+        ("vehicle", "mass_kg"),
+        ("engine", "max_torque_Nm"),
+        ("battery", "capacity_J"),
+        ("driving", "prediction_engine_speed_rpm"),
+        ("gearbox", "gears"),
+    ],
 )
 def test_missing_value_names_field_and_file(tmp_path, section, key):
     doc = _doc()

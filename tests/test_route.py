@@ -99,7 +99,8 @@ def test_grid_against_brute_force(spec, ds):
     assert L == pytest.approx(s[-1])
     # elevation (tan form) at every node equals a fine quadrature of the source gradient
     fine = np.linspace(0, L, 20001)
-    rise_fine = np.concatenate([[0], np.cumsum(grade(0.5 * (fine[1:] + fine[:-1])) * np.diff(fine))])
+    mid = 0.5 * (fine[1:] + fine[:-1])
+    rise_fine = np.concatenate([[0], np.cumsum(grade(mid) * np.diff(fine))])
     rise_nodes = np.concatenate([[0], np.cumsum(r.grade[: n - 1] * dsr)])
     np.testing.assert_allclose(rise_nodes, np.interp(x[:n], fine, rise_fine), atol=0.02 * dsr)
     # speed limit at a node = the smallest source limit within one cell either side
@@ -135,8 +136,9 @@ def test_stop_row_takes_next_speed_and_start_end_flags():
 
 def test_stop_stretch_limit_is_next_moving_row():
     # the stop at 300 is followed by the 400 m row (60 km/h): 300..400 is 60 km/h
-    r = route_from_rows(rows((0, 40, 0, 0), (300, 0, 0, 10), (400, 60, 0, 0), (500, 60, 0, 0)),
-                        ds=10.0, bucket=None)
+    r = route_from_rows(
+        rows((0, 40, 0, 0), (300, 0, 0, 10), (400, 60, 0, 0), (500, 60, 0, 0)), ds=10.0, bucket=None
+    )
     assert r.vmax[32] == pytest.approx(60 / 3.6)
     assert r.vmax[25] == pytest.approx(40 / 3.6)
 

@@ -25,22 +25,29 @@ VP25 = VP.replace(mass=25000.0)
 
 
 def make(*data, ds=10.0, bucket=512):
-    return route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(data)], ds=ds,
-                           bucket=bucket)
+    return route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(data)], ds=ds, bucket=bucket)
 
 
 # a route with a standing start, limit changes, steep climbs and descents, stops, standing end
 MIXED = make(
-    (0, 0, 0, 5), (10, 60, 0, 0), (400, 60, 8, 0), (900, 40, -9, 0), (1300, 0, 0, 20),
-    (1310, 80, 3, 0), (2500, 30, 0, 0), (2700, 80, -4, 0), (3400, 0, 0, 7),
+    (0, 0, 0, 5),
+    (10, 60, 0, 0),
+    (400, 60, 8, 0),
+    (900, 40, -9, 0),
+    (1300, 0, 0, 20),
+    (1310, 80, 3, 0),
+    (2500, 30, 0, 0),
+    (2700, 80, -4, 0),
+    (3400, 0, 0, 7),
 )
 
 
 # ------------------------------------------------------------------------ NumPy references
 def np_road_load(vp, v, g):
     a = np.arctan(g)
-    return (0.5 * float(vp.c_w * vp.area * vp.rho) * v * v
-            + float(vp.mass * vp.g) * (float(vp.c_r) * np.cos(a) + np.sin(a)))
+    return 0.5 * float(vp.c_w * vp.area * vp.rho) * v * v + float(vp.mass * vp.g) * (
+        float(vp.c_r) * np.cos(a) + np.sin(a)
+    )
 
 
 def np_a_fwd(vp, v, g, w):
@@ -158,8 +165,9 @@ def test_time_grid_matches_numpy_reference(mass, w_rpm):
     np.testing.assert_allclose(np.asarray(pred.P_d), P, rtol=1e-8, atol=1e-3)
     m = np.asarray(pred.mask)
     np.testing.assert_allclose(np.asarray(pred.v_ref)[m], v_at[m], atol=1e-9)
-    np.testing.assert_allclose(np.asarray(pred.s), np.concatenate([[0], np.cumsum(dist)[:-1]]),
-                               atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(pred.s), np.concatenate([[0], np.cumsum(dist)[:-1]]), atol=1e-7
+    )
 
 
 def test_short_track_power_on_slopes_matches_paper():
@@ -207,8 +215,10 @@ route_rows = st.lists(
 
 def _rows(spec):
     s = np.cumsum([0.0] + [d for d, *_ in spec[1:]])
-    rows = [Row(float(s[k]), v, g, stop if v == 0 else 0.0, k + 2)
-            for k, (_, v, g, stop) in enumerate(spec)]
+    rows = [
+        Row(float(s[k]), v, g, stop if v == 0 else 0.0, k + 2)
+        for k, (_, v, g, stop) in enumerate(spec)
+    ]
     if all(r.v_kmh == 0 for r in rows):
         rows[1] = rows[1]._replace(v_kmh=50.0, stop_s=0.0)
     return rows
@@ -234,8 +244,9 @@ def test_properties(spec, mass, dt):
     limit = _src_limit(rows)
     s_k = np.asarray(pred.s)[m]
     vr = np.asarray(pred.v_ref)[m]
-    assert np.all(vr <= np.minimum(limit(np.minimum(s_k, L * (1 - 1e-12))),
-                                   float(vp.v_cruise)) + 1e-9)
+    assert np.all(
+        vr <= np.minimum(limit(np.minimum(s_k, L * (1 - 1e-12))), float(vp.v_cruise)) + 1e-9
+    )
     s_next = np.append(s_k[1:], L)
     x = node_positions(route)[:n]
     for sa, sb, vk in zip(s_k, s_next, np.asarray(pred.v)[m], strict=True):
@@ -312,6 +323,8 @@ def test_bad_arguments():
         predict_velocity(MIXED, VP, n_steps=10)
     with pytest.raises(ValueError, match="dt must be"):
         predict_velocity(MIXED, VP, dt=0.0)
+    with pytest.raises(ValueError, match="use predict_batch"):
+        predict_velocity(pad_routes([MIXED, MIXED]), VP)
     with pytest.raises(ValueError, match="pair them"):
         predict_batch([MIXED, MIXED], [VP, VP, VP])
 
@@ -322,8 +335,12 @@ ROUTES = [load_route("short_track"), MIXED, make((0, 70, 2, 0), (4000, 70, -2, 0
 
 def _assert_member(batch, b, single):
     for name in ("t", "s", "v", "a", "grade", "P_d", "v_ref", "mask", "trip_time", "feasible"):
-        np.testing.assert_allclose(np.asarray(getattr(batch, name))[b],
-                                   np.asarray(getattr(single, name)), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(
+            np.asarray(getattr(batch, name))[b],
+            np.asarray(getattr(single, name)),
+            rtol=1e-12,
+            atol=1e-9,
+        )
 
 
 def test_vmap_over_routes_and_vehicles_equals_loop():
@@ -341,6 +358,12 @@ def test_vmap_over_routes_and_vehicles_equals_loop():
     many = predict_batch(MIXED, vps)
     for b, v in enumerate(vps):
         _assert_member(many, b, predict_velocity(MIXED, v, n_steps=many.t.shape[1]))
+    # engine speeds per member
+    w = np.array([[700.0], [1100.0], [1500.0]]) * RPM
+    per = predict_batch(MIXED, vps, w_pred=w)
+    for b, v in enumerate(vps):
+        one = predict_velocity(MIXED, v, n_steps=per.t.shape[1], w_pred=float(w[b, 0]))
+        _assert_member(per, b, one)
     # a batch of routes, one vehicle
     routes_only = predict_batch(ROUTES, VP)
     for b, r in enumerate(ROUTES):
@@ -369,8 +392,12 @@ def test_new_vehicle_values_do_not_recompile():
 
 
 def test_float32_agrees_with_float64():
-    r32 = type(MIXED)(*(np.asarray(x, np.float32) if np.asarray(x).dtype == np.float64
-                        else np.asarray(x) for x in MIXED))
+    r32 = type(MIXED)(
+        *(
+            np.asarray(x, np.float32) if np.asarray(x).dtype == np.float64 else np.asarray(x)
+            for x in MIXED
+        )
+    )
     v32 = type(VP)(*(np.asarray(x, np.float32) for x in VP))
     p32 = predict_velocity(r32, v32)
     p64 = predict_velocity(MIXED, VP)

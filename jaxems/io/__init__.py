@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..params import DATA_DIR
-from ..route import DS_DEFAULT, BUCKET, Route, RouteError
+from ..route import BUCKET, DS_DEFAULT, Route, RouteError
 from .csv import read_csv, write_csv
 from .vecto import read_vdri
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from ..route import Row, RouteError
+from ..route import RouteError, Row
 
 
 def read_lines(path: str | Path) -> list[tuple[int, str]]:
@@ -51,9 +51,7 @@ def parse_table(
     idx: dict[str, int] = {}
     for field, name in required.items():
         if name.lower() not in names:
-            raise RouteError(
-                f"{src}: line {head_no}: missing column {name} (header has: {head})"
-            )
+            raise RouteError(f"{src}: line {head_no}: missing column {name} (header has: {head})")
         idx[field] = names.index(name.lower())
     defaults: dict[str, float] = {}
     for field, (name, default) in optional.items():

@@ -159,9 +159,7 @@ def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
         return v_next, (v_next, stalled)
 
     v0 = vlim[0]  # 0 at a starting stop, the limit otherwise (flying start)
-    _, (v_f, stalled) = jax.lax.scan(
-        fwd, v0, (grade[:-1], w[:-1], vlim[1:], floor[1:], mask[1:])
-    )
+    _, (v_f, stalled) = jax.lax.scan(fwd, v0, (grade[:-1], w[:-1], vlim[1:], floor[1:], mask[1:]))
     v_fwd = jnp.concatenate([v0[None], v_f])
 
     def bwd(v, lim):
@@ -173,9 +171,7 @@ def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
     v = jnp.where(mask, jnp.minimum(v_fwd, v_bwd), 0.0)
 
     cell_valid = mask[1:]
-    dt_cell = jnp.where(
-        cell_valid, 2.0 * ds / jnp.maximum(v[:-1] + v[1:], V_CRAWL), 0.0
-    )
+    dt_cell = jnp.where(cell_valid, 2.0 * ds / jnp.maximum(v[:-1] + v[1:], V_CRAWL), 0.0)
     stop = jnp.where(mask, jnp.asarray(route.stop, dtype), 0.0)
     # arrival at i+1 = arrival at i + stop_i + dt_cell_i
     t_arr = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(stop[:-1] + dt_cell)])
@@ -215,9 +211,7 @@ def _cell_state(route: Route, vp: VehicleParams, prof: Profile, t):
     vsum = vi + vn
     regular = vsum >= V_CRAWL  # the same threshold as the cell time in velocity_profile
     # fraction of the cell covered: constant acceleration (or uniform motion if degenerate)
-    frac = jnp.where(
-        regular, (2.0 * vi * x + (vn - vi) * x * x) / jnp.where(regular, vsum, 1.0), x
-    )
+    frac = jnp.where(regular, (2.0 * vi * x + (vn - vi) * x * x) / jnp.where(regular, vsum, 1.0), x)
     v_t = jnp.where(regular, vi + (vn - vi) * x, ds / jnp.where(moving, dt_c, 1.0))
     v_t = jnp.where(moving, v_t, 0.0)
     s_t = jnp.minimum(i * ds + frac * ds, prof.length)
@@ -325,7 +319,10 @@ def _w_pred_array(vp: VehicleParams, w_pred, n: int):
 
 
 def predict_velocity(
-    route: Route, vehicle: VehicleParams, dt: float = 1.0, n_steps: int | None = None,
+    route: Route,
+    vehicle: VehicleParams,
+    dt: float = 1.0,
+    n_steps: int | None = None,
     w_pred=None,
 ) -> Prediction:
     """Level 3 speed and power prediction for one route and one vehicle.
@@ -338,6 +335,8 @@ def predict_velocity(
     """
     if not (isinstance(dt, int | float) and dt > 0 and math.isfinite(dt)):
         raise ValueError(f"dt must be a positive number of seconds (got {dt!r})")
+    if np.ndim(route.ds) != 0 or np.ndim(vehicle.mass) != 0:
+        raise ValueError("predict_velocity takes one route and one vehicle; use predict_batch")
     N = np.shape(route.grade)[-1]
     prof = _profile_jit(route, vehicle, _w_pred_array(vehicle, w_pred, N))
     trip = float(prof.trip_time)
@@ -345,8 +344,9 @@ def predict_velocity(
     if n_steps is None:
         n_steps = steps_for(trip, dt)
     elif n_steps < need:
-        raise ValueError(f"n_steps={n_steps} too small: the trip takes {trip:.1f} s "
-                         f"({need} steps of {dt:g} s)")
+        raise ValueError(
+            f"n_steps={n_steps} too small: the trip takes {trip:.1f} s ({need} steps of {dt:g} s)"
+        )
     return _resample_jit(route, vehicle, prof, dt, n_steps=n_steps)
 
 
@@ -365,6 +365,8 @@ def predict_batch(
 
     routes: a list of `Route`s (padded with `pad_routes`) or a padded batch (leaves (B, N));
     vehicles: a list or a stacked batch (`stack_vehicles`) of B vehicles, or one vehicle.
+    w_pred: None (each vehicle's w_pred), or rad/s broadcastable to (B, N): a scalar, (N,) per
+    node, (B, 1) per member or (B, N).
     A single route with a batch of vehicles is also accepted. Batches are paired element by
     element (route b with vehicle b); for every combination, repeat them. All members share
     one static number of steps (the longest trip). Returns a `Prediction` with leading axis B.
@@ -376,8 +378,9 @@ def predict_batch(
     br = _batch_size(routes.ds)
     bv = _batch_size(vehicles.mass)
     if br is None and bv is None:
-        raise ValueError("predict_batch: neither routes nor vehicles are a batch; use "
-                         "predict_velocity")
+        raise ValueError(
+            "predict_batch: neither routes nor vehicles are a batch; use predict_velocity"
+        )
     if br is not None and bv is not None and br != bv:
         raise ValueError(f"predict_batch: {br} routes but {bv} vehicles (pair them one to one)")
     B = br if br is not None else bv
@@ -391,7 +394,7 @@ def predict_batch(
     if w_pred is None:
         w = jnp.broadcast_to(jnp.asarray(vehicles.w_pred)[:, None], (B, N))
     else:
-        w = jnp.broadcast_to(jnp.asarray(w_pred), (B, N)) if np.ndim(w_pred) < 2 else w_pred
+        w = jnp.broadcast_to(jnp.asarray(w_pred), (B, N))
     prof = _profile_vmap(routes, vehicles, w)
     trip = float(jnp.max(prof.trip_time))
     need = int(math.floor(trip / dt)) + 1
