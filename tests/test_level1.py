@@ -2,7 +2,6 @@
 a plain NumPy Viterbi loop, MPC against the full horizon, batching and recompilation."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -38,29 +37,36 @@ def synthetic_route(T=T, seed=0):
 
 # ------------------------------------------------------------------- structured relaxation
 @jax.jit
-def _relax_both(V, v, grade, lam, prm):
-    x = l1.transition_inputs(VP, v, grade, lam, prm)
-    k = l1.transition_consts(VP, prm.averaged)
-    C = sw.switch_cost_matrix(VP, v, grade, lam, prm)
-    return l1.relax_structured(V, x, k), dp.relax_dense(V, C), C
+def _relax_all(vp, V, v, grade, lam, prm):
+    x = l1.transition_inputs(vp, v, grade, lam, prm)
+    k = l1.transition_consts(vp, prm.averaged)
+    kd = l1.dense_consts(vp, prm.averaged)
+    C = sw.switch_cost_matrix(vp, v, grade, lam, prm)
+    return (l1.relax_structured(V, x, k), l1.relax_same_open_time(V, x, kd),
+            dp.relax_dense(V, C), C)
 
 
 @settings(max_examples=25)
 @given(v=st.floats(0.0, 30.0), grade=st.floats(-0.15, 0.15), lam=st.floats(-3.0, -1.0),
        averaged=st.sampled_from([0.0, 0.3, 1.0]), weight=st.sampled_from([0.0, 1.0, 2.5]),
+       dts=st.sampled_from([(1.0, 1.0), (1.5, 0.6), (0.4, 0.9)]),
        seed=st.integers(0, 2**31 - 1))
-def test_structured_relaxation_equals_dense(v, grade, lam, averaged, weight, seed):
+def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts, seed):
     rng = np.random.default_rng(seed)
     V = rng.normal(0, 2e4, 48)
     V[rng.random(48) < 0.3] = np.inf
+    vp = VP.replace(dt_M=dts[0], dt_G=dts[1])
     prm = sw.SwitchCostParams(averaged=averaged, weight=weight)
-    (b, a), (bd, _), C = _relax_both(V, v, grade, lam, prm)
-    b, a, bd, C = map(np.asarray, (b, a, bd, C))
+    (b, a), (bf, af), (bd, _), C = _relax_all(vp, V, v, grade, lam, prm)
+    relaxations = [(b, a)] + ([(bf, af)] if dts[0] == dts[1] else [])
+    bd, C = np.asarray(bd), np.asarray(C)
     fin = np.isfinite(bd)
-    assert np.array_equal(np.isfinite(b), fin)
-    np.testing.assert_allclose(b[fin], bd[fin], rtol=1e-12, atol=1e-6)
-    a = a.astype(int)
-    np.testing.assert_allclose((V[a] + C[a, np.arange(48)])[fin], bd[fin], rtol=1e-12, atol=1e-6)
+    for b, a in relaxations:
+        b, a = np.asarray(b), np.asarray(a).astype(int)
+        assert np.array_equal(np.isfinite(b), fin)
+        np.testing.assert_allclose(b[fin], bd[fin], rtol=1e-12, atol=1e-6)
+        np.testing.assert_allclose((V[a] + C[a, np.arange(48)])[fin], bd[fin], rtol=1e-12,
+                                   atol=1e-6)
 
 
 # ----------------------------------------------------------------------- full horizon DP
@@ -129,6 +135,14 @@ def test_switching_costs_reduce_switching():
     np.testing.assert_allclose(float(free.cost), float(np.sum(Hs) * DT), rtol=1e-12)
 
 
+def test_unequal_open_times_use_the_structured_relaxation():
+    vp, P_d, v, grade, lam = synthetic_route(seed=8)
+    vp = vp.replace(dt_M=1.5, dt_G=0.5)
+    r = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
+    ref = _reference_cost(vp, P_d, v, grade, lam, ps.MO * 12, PRM)
+    np.testing.assert_allclose(float(r.cost), ref, rtol=1e-10)
+
+
 def test_infeasible_step_passes_through():
     vp, P_d, v, grade, lam = synthetic_route(seed=2)
     P_d = P_d.copy()
@@ -186,13 +200,3 @@ def test_batch_equals_single_and_does_not_recompile():
     jax.block_until_ready(rb2)
     assert l1.TRACES["level1_batch"] == n0  # new values, same shapes: no new trace
     assert not np.allclose(np.asarray(rb2.cost), np.asarray(rb.cost))
-
-
-def test_float32_agrees_with_float64():
-    vp, P_d, v, grade, lam = synthetic_route(seed=7)
-    r64 = l1.level1_full(vp, P_d, v, grade, lam, DT, None, ps.MO, 0, PRM)
-    f32 = lambda a: jnp.asarray(a, jnp.float32)  # noqa: E731
-    vp32 = jax.tree_util.tree_map(f32, vp)
-    r32 = l1.level1_full(vp32, f32(P_d), f32(v), f32(grade), f32(lam), f32(DT), None, ps.MO, 0,
-                         jax.tree_util.tree_map(f32, PRM))
-    assert abs(float(r32.cost) - float(r64.cost)) <= 1e-3 * abs(float(r64.cost))

@@ -21,8 +21,13 @@ kind = mode-only / gear-only / both). With gear ratios decreasing in G (R(G) > R
 G < G'), every max() resolves by the sign of G - G', so for a source mode M the minimum over
 source gears splits into an exclusive prefix minimum (G < G'), the same gear, and an exclusive
 suffix minimum (G > G') of V(M, G) + a W(G) terms: O(16 x n_gears) per step instead of
-O(S^2). `relax_structured` implements it; `switching.switch_cost_matrix` is the dense
-reference it is tested against.
+O(S^2). `relax_structured` implements it for any dt_M, dt_G. When dt_M == dt_G (the paper's
+setting, and the reference truck) the traction cost depends on the target state only and the
+synchronisation cost is scale_k * D with a constant per-vehicle matrix D; dividing V by scale_k
+turns the relaxation into a min-plus product with that constant matrix
+(`relax_same_open_time`), which vectorises best on CPU. `solve_dp` picks it with `lax.cond`
+when every configuration has dt_M == dt_G. `switching.switch_cost_matrix` is the dense
+reference both are tested against.
 
 Batching: `level1_batch` solves routes x vehicles x lambda_b in one jitted call, running the DP
 with the batch on the last axis (see `jaxems.dp`). Array values never recompile.
@@ -200,6 +205,67 @@ def structured_transition(xs: TransitionInputs, consts: TransitionConsts) -> dp.
     return dp.Transition(relax=lambda V, x: relax_structured(V, x, consts), xs=xs)
 
 
+# ------------------------------------------------------------ dense relaxation (dt_M == dt_G)
+class DenseConsts(NamedTuple):
+    """Per-configuration constant of `relax_same_open_time` (any trailing batch axes).
+
+    D: (S, S) synchronisation energy per unit of (r_d v)^2 between all states (kg m^2 x
+    ratio^2), so that the synchronisation cost of step k is scale_k * D.
+    """
+
+    D: jax.Array
+
+
+def dense_consts(vp: VehicleParams, averaged) -> DenseConsts:
+    """`DenseConsts` of one vehicle: the unit synchronisation matrix."""
+    D = sw.sync_cost_matrix(vp._replace(r_d=jnp.ones_like(vp.r_d)), 1.0, -1.0, averaged)
+    return DenseConsts(D=D)
+
+
+def relax_same_open_time(V, x: TransitionInputs, k: DenseConsts):
+    """Level 1 relaxation for the case dt_M == dt_G (one traction cost per target state).
+
+    Then C(s -> s') = scale D(s, s') + t(s') for s != s' and 0 for s == s'. With scale > 0
+    the minimum over sources is scale * min_s (V[s] / scale + D[s, s']): a min-plus product
+    with the *constant* per-vehicle matrix D, the fastest dense form (no per-step matrix).
+    scale == 0 (standstill or weight 0) falls back to min_s V[s]. V: (S, *b).
+    """
+    S = V.shape[0]
+    b = V.shape[1:]
+    pdt = dp.pointer_dtype(S)
+    s = x.scale
+    pos = s > 0
+    s_safe = jnp.where(pos, s, 1.0)
+    best, arg = dp.relax_dense(V / s_safe[None], k.D)
+    vmin = jnp.min(V, axis=0)
+    vam = jnp.argmin(V, axis=0).astype(pdt)
+    best = jnp.where(pos[None], best * s_safe[None], vmin[None])
+    arg = jnp.where(pos[None], arg, vam[None])
+    best = best + x.trac[2]
+    stay = V <= best
+    ident = jnp.arange(S, dtype=pdt).reshape((S,) + (1,) * len(b))
+    return jnp.where(stay, V, best), jnp.where(stay, ident, arg)
+
+
+def fast_transition(xs: TransitionInputs, consts: DenseConsts) -> dp.Transition:
+    """`relax_same_open_time` as a `dp.Transition` (valid when dt_M == dt_G)."""
+    return dp.Transition(relax=lambda V, x: relax_same_open_time(V, x, consts), xs=xs)
+
+
+def solve_dp(dt_M, dt_G, stage, xs, consts, dconsts, init, mask, first=False):
+    """Run the Level 1 DP (`dp.viterbi`, or `dp.viterbi_first` if ``first``) with the fast
+    relaxation when every configuration has dt_M == dt_G, the structured one otherwise
+    (`lax.cond`: only one runs). Both are exact; the tests compare them with the dense matrix.
+    """
+    f = dp.viterbi_first if first else dp.viterbi
+    fast = jnp.all(jnp.asarray(dt_M) == jnp.asarray(dt_G))
+    return jax.lax.cond(
+        fast,
+        lambda: f(stage, fast_transition(xs, dconsts), init, mask),
+        lambda: f(stage, structured_transition(xs, consts), init, mask),
+    )
+
+
 def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.SwitchCostParams):
     """Switching cost (J) of s_from -> s_to at one step (scalars; broadcasts over states).
 
@@ -226,6 +292,7 @@ class _Tables(NamedTuple):
     stage: jax.Array  # (T, S) J
     xs: TransitionInputs  # (T, ...)
     consts: TransitionConsts
+    dconsts: DenseConsts
     none_feasible: jax.Array  # (T,) bool
     lam: jax.Array  # (T,)
 
@@ -239,7 +306,8 @@ def _tables(vp, P_d, v, grade, lam, dt, params) -> _Tables:
     stage = jnp.where(none[:, None], 0.0, H * dt)
     xs = jax.vmap(transition_inputs, in_axes=(None, 0, 0, 0, None))(vp, v, grade, lam, params)
     consts = transition_consts(vp, params.averaged)
-    return _Tables(split, stage, xs, consts, none, lam)
+    dconsts = dense_consts(vp, params.averaged)
+    return _Tables(split, stage, xs, consts, dconsts, none, lam)
 
 
 def _init_cost(init_mode, init_gear, S, n_g, dtype):
@@ -282,7 +350,7 @@ def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params)
     S = tb.stage.shape[1]
     n_g = S // N_MODES
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
-    r = dp.viterbi(tb.stage, structured_transition(tb.xs, tb.consts), init, mask)
+    r = solve_dp(vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask)
     return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params)
 
 
@@ -340,15 +408,15 @@ def _level1_mpc(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, 
     stage_p = pad(tb.stage)
     mask_p = jnp.concatenate([mask, jnp.zeros(N, bool)])
     xs_p = jax.tree_util.tree_map(pad, tb.xs)
-    trans = lambda xs: structured_transition(xs, tb.consts)  # noqa: E731
     init0 = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
 
     def step(carry, k):
         prev, started = carry
         win = lambda a: jax.lax.dynamic_slice_in_dim(a, k, N)  # noqa: E731
         init = jnp.where(started, jnp.where(jnp.arange(S) == prev, 0.0, jnp.inf), init0)
-        s0, _ = dp.viterbi_first(
-            win(stage_p), trans(jax.tree_util.tree_map(win, xs_p)), init, win(mask_p)
+        s0, _ = solve_dp(
+            vp.dt_M, vp.dt_G, win(stage_p), jax.tree_util.tree_map(win, xs_p), tb.consts,
+            tb.dconsts, init, win(mask_p), first=True,
         )
         s = jnp.where(mask[k], s0, prev)
         return (s, started | mask[k]), s
@@ -404,9 +472,10 @@ def _level1_batch(vps, P_d, v, grade, mask, lam, dt, init_mode, init_gear, param
     n_g = S // N_MODES
     xs = TransitionInputs(scale=last(tb.xs.scale), trac=last(tb.xs.trac))
     consts = jax.tree_util.tree_map(last, tb.consts)
+    dconsts = jax.tree_util.tree_map(last, tb.dconsts)
     m = jnp.broadcast_to(mask[:, None, None], (R, n_v, L, T))
     init = _init_cost(init_mode, init_gear, S, n_g, stage.dtype)
-    r = dp.viterbi(stage, structured_transition(xs, consts), init[:, None], last(m))
+    r = solve_dp(vps.dt_M, vps.dt_G, stage, xs, consts, dconsts, init[:, None], last(m))
     path = jnp.moveaxis(r.path, -1, 0).reshape(R, n_v, L, T)
     start = r.start.reshape(R, n_v, L)
 
@@ -444,7 +513,8 @@ def level1_batch(
 
 
 __all__ = [
-    "Level1Result", "TransitionConsts", "TransitionInputs", "level1_batch", "level1_full",
-    "level1_mpc", "relax_structured", "structured_transition", "transition_consts",
+    "DenseConsts", "Level1Result", "TransitionConsts", "TransitionInputs", "dense_consts",
+    "fast_transition", "level1_batch", "level1_full", "level1_mpc", "relax_same_open_time",
+    "relax_structured", "solve_dp", "structured_transition", "transition_consts",
     "transition_cost", "transition_inputs", "TRACES",
 ]
