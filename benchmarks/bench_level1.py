@@ -54,8 +54,12 @@ def _timeit(f, *args, repeat=3):
 def _vehicles(n):
     base = load_vehicle()
     rng = np.random.default_rng(1)
-    return stack_vehicles([base.replace(mass=rng.uniform(15e3, 40e3), I_e=rng.uniform(2, 4),
-                                        I_m=rng.uniform(1, 2)) for _ in range(n)])
+    return stack_vehicles(
+        [
+            base.replace(mass=rng.uniform(15e3, 40e3), I_e=rng.uniform(2, 4), I_m=rng.uniform(1, 2))
+            for _ in range(n)
+        ]
+    )
 
 
 def make_chunk(key, vps, T, B):
@@ -125,8 +129,15 @@ def main(argv=None) -> int:
     T, B, C = a.steps, a.batch, min(a.chunk, a.batch)
     n_chunks = -(-B // C)
     vps = _vehicles(10)
-    out: dict = {"device": str(jax.devices()[0]), "cpu_count": os.cpu_count(), "dtype": "float32",
-                 "states": S, "steps": T, "batch": n_chunks * C, "chunk": C}
+    out: dict = {
+        "device": str(jax.devices()[0]),
+        "cpu_count": os.cpu_count(),
+        "dtype": "float32",
+        "states": S,
+        "steps": T,
+        "batch": n_chunks * C,
+        "chunk": C,
+    }
 
     # 1. throughput, Level 1 relaxation (dt_M == dt_G), batch-last, chunked
     total = 0.0
@@ -142,27 +153,37 @@ def main(argv=None) -> int:
         jax.block_until_ready(dp_level1(stage, xs, dconsts))
         total += time.perf_counter() - t0
     relax = S * S * T * n_chunks * C
-    out["viterbi_level1"] = {"seconds": total, "relaxations_per_s": relax / total,
-                             "first_call_s": compile_t}
+    out["viterbi_level1"] = {
+        "seconds": total,
+        "relaxations_per_s": relax / total,
+        "first_call_s": compile_t,
+    }
     # comparisons on one chunk
-    stage, xs, consts, dconsts, v, grade, lam, vp_b = make_chunk(jax.random.PRNGKey(0), vps, T,
-                                                                   C)
+    stage, xs, consts, dconsts, v, grade, lam, vp_b = make_chunk(jax.random.PRNGKey(0), vps, T, C)
     _, c_fast = dp_level1(stage, xs, dconsts)
     _, c_str = dp_structured(stage, xs, consts)
     out["fast_vs_structured_max_rel_cost_diff"] = float(
-        jnp.max(jnp.abs(c_fast - c_str) / jnp.abs(c_str)))
+        jnp.max(jnp.abs(c_fast - c_str) / jnp.abs(c_str))
+    )
     med, _ = _timeit(dp_structured, stage, xs, consts, repeat=1)
-    out["viterbi_structured_any_open_times"] = {"seconds_per_chunk": med,
-                                                "relaxations_per_s": S * S * T * C / med}
+    out["viterbi_structured_any_open_times"] = {
+        "seconds_per_chunk": med,
+        "relaxations_per_s": S * S * T * C / med,
+    }
     Cmat = jax.vmap(sw.switch_cost_matrix, in_axes=(0, 0, 0, 0, None))(
-        vp_b, v[0], grade[0], lam, sw.SwitchCostParams())
+        vp_b, v[0], grade[0], lam, sw.SwitchCostParams()
+    )
     Cmat = jnp.moveaxis(Cmat, 0, -1)  # (S, S, C): one constant matrix per configuration
     med, _ = _timeit(dp_dense, stage, Cmat, repeat=1)
-    out["viterbi_dense_same_layout"] = {"seconds_per_chunk": med,
-                                        "relaxations_per_s": S * S * T * C / med}
+    out["viterbi_dense_same_layout"] = {
+        "seconds_per_chunk": med,
+        "relaxations_per_s": S * S * T * C / med,
+    }
     med, _ = _timeit(dp_vmapped, stage, xs, consts, repeat=1)
-    out["viterbi_structured_vmap_batch_first"] = {"seconds_per_chunk": med,
-                                                  "relaxations_per_s": S * S * T * C / med}
+    out["viterbi_structured_vmap_batch_first"] = {
+        "seconds_per_chunk": med,
+        "relaxations_per_s": S * S * T * C / med,
+    }
 
     # 2. MPC latency, one vehicle
     N = a.horizon
@@ -186,8 +207,9 @@ def main(argv=None) -> int:
     @jax.jit
     def mpc_solve_with_tables(vp, P_d, v, grade, lam, init):
         t = l1._tables(vp, P_d, v, grade, lam, jnp.float32(0.01), prm)
-        return l1.solve_dp(vp.dt_M, vp.dt_G, t.stage, t.xs, t.consts, t.dconsts, init, None,
-                           first=True)
+        return l1.solve_dp(
+            vp.dt_M, vp.dt_G, t.stage, t.xs, t.consts, t.dconsts, init, None, first=True
+        )
 
     def lat(f, *args, n=200):
         jax.block_until_ready(f(*args))
@@ -196,14 +218,18 @@ def main(argv=None) -> int:
             t0 = time.perf_counter()
             jax.block_until_ready(f(*args))
             ts.append(time.perf_counter() - t0)
-        return {"median_ms": 1e3 * float(np.median(ts)), "p90_ms": 1e3 * float(np.quantile(ts, .9)),
-                "min_ms": 1e3 * float(min(ts))}
+        return {
+            "median_ms": 1e3 * float(np.median(ts)),
+            "p90_ms": 1e3 * float(np.quantile(ts, 0.9)),
+            "min_ms": 1e3 * float(min(ts)),
+        }
 
     out["mpc_horizon"] = N
     out["mpc_dp_latency"] = lat(mpc_solve, tb.stage, tb.xs, tb.dconsts, init)
     out["mpc_dp_structured_latency"] = lat(mpc_solve_structured, tb.stage, tb.xs, tb.consts, init)
-    out["mpc_dp_plus_hamiltonian_latency"] = lat(mpc_solve_with_tables, vp1, Pd1, v1, g1,
-                                                 jnp.float32(-2.0), init, n=50)
+    out["mpc_dp_plus_hamiltonian_latency"] = lat(
+        mpc_solve_with_tables, vp1, Pd1, v1, g1, jnp.float32(-2.0), init, n=50
+    )
 
     # 3. end to end level1_batch on 100 configurations (10 routes x 5 vehicles x 2 lambda)
     R, V, L = (10, 5, 2) if not a.quick else (2, 2, 2)
@@ -215,9 +241,12 @@ def main(argv=None) -> int:
     lams = jnp.asarray([-2.0, -2.2], jnp.float32)[:L]
     f = lambda *args: l1.level1_batch(*args).cost  # noqa: E731
     med, mn = _timeit(f, vps5, Pd, vv, gg, mk, lams, jnp.float32(1.0), 3, 5, prm, repeat=1)
-    out["level1_batch_end_to_end"] = {"configs": R * V * L, "seconds": med,
-                                      "config_steps_per_s": R * V * L * T / med,
-                                      "equivalent_relaxations_per_s": S * S * R * V * L * T / med}
+    out["level1_batch_end_to_end"] = {
+        "configs": R * V * L,
+        "seconds": med,
+        "config_steps_per_s": R * V * L * T / med,
+        "equivalent_relaxations_per_s": S * S * R * V * L * T / med,
+    }
     if a.json:
         print(json.dumps(out))
     else:

@@ -33,8 +33,12 @@ from jaxems.levels import powersplit as ps  # noqa: E402
 from jaxems.params import KMH, RPM, load_vehicle  # noqa: E402
 
 COLORS = {ps.MC: "tab:purple", ps.ME: "tab:red", ps.MM: "tab:green", ps.MO: "0.8"}
-NAMES = {ps.MC: "M_c combined", ps.ME: "M_e engine-only", ps.MM: "M_m motor-only",
-         ps.MO: "M_o open"}
+NAMES = {
+    ps.MC: "M_c combined",
+    ps.ME: "M_e engine-only",
+    ps.MM: "M_m motor-only",
+    ps.MO: "M_o open",
+}
 
 
 def main(argv=None) -> int:
@@ -53,8 +57,9 @@ def main(argv=None) -> int:
     lams = np.linspace(-3.0, -1.5, 301)
     pds = np.linspace(-150e3, 300e3, 301)
 
-    split = jax.jit(jax.vmap(jax.vmap(ps.mode_gear_split, (None, 0, None, None)),
-                             (None, None, None, 0)))
+    split = jax.jit(
+        jax.vmap(jax.vmap(ps.mode_gear_split, (None, 0, None, None)), (None, None, None, 0))
+    )
     s = split(vp, jnp.asarray(pds), v, jnp.asarray(lams))  # (L, P, 4, G)
     H = np.asarray(s.H)[:, :, :, g]
     best = np.where(np.isfinite(H).any(-1), np.argmin(H, -1), -1)  # (L, P)
@@ -91,11 +96,14 @@ def main(argv=None) -> int:
 
     # Figures 7 and 8: cross-section at P_d#
     s1 = jax.jit(jax.vmap(ps.mode_gear_split, (None, None, None, 0)))(
-        vp, a.pd_kw * 1e3, v, jnp.asarray(lams))
+        vp, a.pd_kw * 1e3, v, jnp.asarray(lams)
+    )
     H1 = np.asarray(s1.H)[:, :, g]
     Pb1 = np.asarray(s1.P_b)[:, :, g]
-    for fname, Y, ylabel, scale in (("fig7_hamiltonian.png", H1, "H_1 [kW]", 1e3),
-                                    ("fig8_battery_power.png", Pb1, "P_b* [kW]", 1e3)):
+    for fname, Y, ylabel, scale in (
+        ("fig7_hamiltonian.png", H1, "H_1 [kW]", 1e3),
+        ("fig8_battery_power.png", Pb1, "P_b* [kW]", 1e3),
+    ):
         fig, ax = plt.subplots(figsize=(7, 4))
         for m in (ps.MM, ps.MC, ps.ME):
             ax.plot(lams, Y[:, m] / scale, color=COLORS[m], label=NAMES[m])
@@ -114,10 +122,19 @@ def main(argv=None) -> int:
 
     lam_ref = -2.0
     gr = ps.guards(vp, w, lam_ref)
-    info = {"speed_kmh": a.speed_kmh, "gear": a.gear, "w_rpm": w / RPM, "B1": B1, "B2": B2,
-            "at_lambda_b": lam_ref, "B3_kW": float(gr.B3) / 1e3, "B4_kW": float(gr.B4) / 1e3,
-            "B5_kW_at_-2.6": float(ps.guards(vp, w, -2.6).B5) / 1e3,
-            "motor_limit_kW": m_lim, "files": sorted(str(p) for p in out.glob("fig*.png"))}
+    info = {
+        "speed_kmh": a.speed_kmh,
+        "gear": a.gear,
+        "w_rpm": w / RPM,
+        "B1": B1,
+        "B2": B2,
+        "at_lambda_b": lam_ref,
+        "B3_kW": float(gr.B3) / 1e3,
+        "B4_kW": float(gr.B4) / 1e3,
+        "B5_kW_at_-2.6": float(ps.guards(vp, w, -2.6).B5) / 1e3,
+        "motor_limit_kW": m_lim,
+        "files": sorted(str(p) for p in out.glob("fig*.png")),
+    }
     if a.json:
         print(json.dumps(info))
     else:

@@ -24,8 +24,16 @@ from jaxems.params import load_vehicle  # noqa: E402
 from jaxems.switching import A1_TRANSITIONS, table_a1  # noqa: E402
 
 PAPER = {
-    "G_down_Mm": 10, "G_down_Me": 20, "G_down_Mc": 30, "G_up": 0, "Me->Mm": 16, "Mm->Me": 31,
-    "Me->Mc": 16, "Mc->Me": 0, "Mm->Mc": 31, "Mc->Mm": 0,
+    "G_down_Mm": 10,
+    "G_down_Me": 20,
+    "G_down_Mc": 30,
+    "G_up": 0,
+    "Me->Mm": 16,
+    "Mm->Me": 31,
+    "Me->Mc": 16,
+    "Mc->Me": 0,
+    "Mm->Mc": 31,
+    "Mc->Mm": 0,
 }
 PAPER_AVG = {"Me->Mm": 24, "Mm->Me": 24, "Me->Mc": 8, "Mc->Me": 8, "Mm->Mc": 16, "Mc->Mm": 16}
 
@@ -38,8 +46,13 @@ def main(argv=None) -> int:
     a = ap.parse_args(argv)
     t = table_a1(load_vehicle(a.vehicle), lam=a.lam)
     rows = [
-        {"transition": k, "kJ": round(t[k][0] / 1e3, 3), "avg_kJ": round(t[k][1] / 1e3, 3),
-         "paper_kJ": PAPER[k], "paper_avg_kJ": PAPER_AVG.get(k)}
+        {
+            "transition": k,
+            "kJ": round(t[k][0] / 1e3, 3),
+            "avg_kJ": round(t[k][1] / 1e3, 3),
+            "paper_kJ": PAPER[k],
+            "paper_avg_kJ": PAPER_AVG.get(k),
+        }
         for k in A1_TRANSITIONS
     ]
     if a.json:
@@ -49,8 +62,9 @@ def main(argv=None) -> int:
     print(f"{'transition':<11} {'ours kJ':>8} {'paper':>6} {'ours avg':>9} {'paper avg':>10}")
     for r in rows:
         pa = "" if r["paper_avg_kJ"] is None else r["paper_avg_kJ"]
-        print(f"{r['transition']:<11} {r['kJ']:8.1f} {r['paper_kJ']:6d} {r['avg_kJ']:9.1f} "
-              f"{pa:>10}")
+        print(
+            f"{r['transition']:<11} {r['kJ']:8.1f} {r['paper_kJ']:6d} {r['avg_kJ']:9.1f} {pa:>10}"
+        )
     return 0
 
 

@@ -34,27 +34,42 @@ def main(argv=None) -> int:
     ap.add_argument("--vehicle", default="reference_truck")
     ap.add_argument("--mass", type=float, default=25000.0, help="kg (default 25000)")
     ap.add_argument("--speed-kmh", type=float, default=25.0)
-    ap.add_argument("--mode", choices=["Mc", "Me", "Mm"], default="Me",
-                    help="mode after the switch (its traction recovers the speed)")
+    ap.add_argument(
+        "--mode",
+        choices=["Mc", "Me", "Mm"],
+        default="Me",
+        help="mode after the switch (its traction recovers the speed)",
+    )
     ap.add_argument("--lambda-t", type=float, default=-25e3, help="J/s (default -25000)")
     ap.add_argument("--tau", type=float, default=1.0, help="open driveline time (s)")
     a = ap.parse_args(argv)
     vp = load_vehicle(a.vehicle).replace(mass=a.mass)
-    rows = table_a2(vp, (0.0, 6.0, 12.0), a.speed_kmh * KMH, a.tau,
-                    SwitchCostParams(lambda_t=a.lambda_t), MODE_SHORT.index(a.mode))
+    rows = table_a2(
+        vp,
+        (0.0, 6.0, 12.0),
+        a.speed_kmh * KMH,
+        a.tau,
+        SwitchCostParams(lambda_t=a.lambda_t),
+        MODE_SHORT.index(a.mode),
+    )
     if a.json:
-        print(json.dumps({"mass_kg": a.mass, "speed_kmh": a.speed_kmh, "mode": a.mode,
-                          "rows": rows}))
+        print(
+            json.dumps({"mass_kg": a.mass, "speed_kmh": a.speed_kmh, "mode": a.mode, "rows": rows})
+        )
         return 0
-    print(f"Table A2: {a.tau:g} s open driveline at {a.speed_kmh:g} km/h, {a.mass:g} kg, "
-          f"recovery in {a.mode} (F_max = {rows[0]['F_max_N'] / 1e3:.1f} kN), "
-          f"lambda_t = {a.lambda_t / 1e3:g} kJ/s")
+    print(
+        f"Table A2: {a.tau:g} s open driveline at {a.speed_kmh:g} km/h, {a.mass:g} kg, "
+        f"recovery in {a.mode} (F_max = {rows[0]['F_max_N'] / 1e3:.1f} kN), "
+        f"lambda_t = {a.lambda_t / 1e3:g} kJ/s"
+    )
     print(f"{'slope':>6} {'speed loss m/s':>15} {'time loss s':>12} {'cost kJ':>8}   paper")
     for r in rows:
         p = PAPER.get(r["slope_pct"])
         ps_ = "" if p is None else f"{p[0]:.3g} / {p[1]:.2g} / {p[2]:.2g}"
-        print(f"{r['slope_pct']:5.0f}% {r['speed_loss_mps']:15.3f} {r['time_loss_s']:12.3f} "
-              f"{r['cost_kJ']:8.2f}   {ps_}")
+        print(
+            f"{r['slope_pct']:5.0f}% {r['speed_loss_mps']:15.3f} {r['time_loss_s']:12.3f} "
+            f"{r['cost_kJ']:8.2f}   {ps_}"
+        )
     return 0
 
 

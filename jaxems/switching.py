@@ -95,8 +95,10 @@ def sync_energy(vp: VehicleParams, ce0, cm0, w0, ce1, cm1, w1, averaged=0.0):
     de = ce1 * w1 * w1 - ce0 * w0 * w0
     dm = cm1 * w1 * w1 - cm0 * w0 * w0
     return (
-        u_e * jnp.maximum(de, 0.0) + d_e * jnp.maximum(-de, 0.0)
-        + u_m * jnp.maximum(dm, 0.0) + d_m * jnp.maximum(-dm, 0.0)
+        u_e * jnp.maximum(de, 0.0)
+        + d_e * jnp.maximum(-de, 0.0)
+        + u_m * jnp.maximum(dm, 0.0)
+        + d_m * jnp.maximum(-dm, 0.0)
     )
 
 
@@ -112,7 +114,13 @@ def sync_cost_matrix(vp: VehicleParams, v, lam, averaged=0.0):
     cm_s = jnp.repeat(cm, n_g)
     w_s = jnp.tile(w, N_MODES)
     E = sync_energy(
-        vp, ce_s[:, None], cm_s[:, None], w_s[:, None], ce_s[None], cm_s[None], w_s[None],
+        vp,
+        ce_s[:, None],
+        cm_s[:, None],
+        w_s[:, None],
+        ce_s[None],
+        cm_s[None],
+        w_s[None],
         averaged,
     )
     return -lam * E
@@ -172,7 +180,10 @@ def traction_loss(vp: VehicleParams, F0, v, tau, F_max, params: SwitchCostParams
     c_kin = -params.lambda_k * 0.5 * m * jnp.abs(v1 * v1 - v0 * v0)
     cost = jnp.where(decel, c_time, jnp.where(F0 == 0, 0.0, c_kin))
     return TractionLoss(
-        time_loss_s=-dt_t, speed_loss_mps=v0 - v1, recovery_s=t_r, saturated=saturated,
+        time_loss_s=-dt_t,
+        speed_loss_mps=v0 - v1,
+        recovery_s=t_r,
+        saturated=saturated,
         cost=cost,
     )
 
@@ -228,8 +239,16 @@ def eps_G(vp: VehicleParams, v, grade, lam, mode, params: SwitchCostParams):
 
 # ---------------------------------------------------------------------------- paper's tables
 A1_TRANSITIONS = (
-    "G_down_Mm", "G_down_Me", "G_down_Mc", "G_up",
-    "Me->Mm", "Mm->Me", "Me->Mc", "Mc->Me", "Mm->Mc", "Mc->Mm",
+    "G_down_Mm",
+    "G_down_Me",
+    "G_down_Mc",
+    "G_up",
+    "Me->Mm",
+    "Mm->Me",
+    "Me->Mc",
+    "Mc->Me",
+    "Mm->Mc",
+    "Mc->Mm",
 )
 
 
@@ -252,14 +271,26 @@ def table_a1(vp: VehicleParams, lam=-2.2, w_conn_rpm=930.0, w_down_rpm=1200.0):
     for m in ("Mm", "Me", "Mc"):
         out[f"G_down_{m}"] = (cost(m, m, w0, w1, 0.0), cost(m, m, w0, w1, 1.0))
     out["G_up"] = (cost("Mc", "Mc", w1, w0, 0.0), cost("Mc", "Mc", w1, w0, 1.0))
-    for a, b in (("Me", "Mm"), ("Mm", "Me"), ("Me", "Mc"), ("Mc", "Me"), ("Mm", "Mc"),
-                 ("Mc", "Mm")):
+    for a, b in (
+        ("Me", "Mm"),
+        ("Mm", "Me"),
+        ("Me", "Mc"),
+        ("Mc", "Me"),
+        ("Mm", "Mc"),
+        ("Mc", "Mm"),
+    ):
         out[f"{a}->{b}"] = (cost(a, b, w0, w0, 0.0), cost(a, b, w0, w0, 1.0))
     return out
 
 
-def table_a2(vp: VehicleParams, slopes_pct=(0.0, 6.0, 12.0), speed_mps=25 / 3.6, tau_s=1.0,
-             params: SwitchCostParams | None = None, mode: int = 1):
+def table_a2(
+    vp: VehicleParams,
+    slopes_pct=(0.0, 6.0, 12.0),
+    speed_mps=25 / 3.6,
+    tau_s=1.0,
+    params: SwitchCostParams | None = None,
+    mode: int = 1,
+):
     """Traction-interruption rows of Table A2: list of dicts per slope.
 
     Each row: slope_pct, speed_loss_mps (v_0 - v_1), time_loss_s (-dt_t), cost_kJ, F0_N (road
@@ -272,9 +303,15 @@ def table_a2(vp: VehicleParams, slopes_pct=(0.0, 6.0, 12.0), speed_mps=25 / 3.6,
     for slope in slopes_pct:
         F0 = float(pt.road_load(vp, speed_mps, slope / 100.0))
         r = traction_loss(vp, F0, speed_mps, tau_s, F_max, params)
-        rows.append({
-            "slope_pct": float(slope), "speed_loss_mps": float(r.speed_loss_mps),
-            "time_loss_s": float(r.time_loss_s), "cost_kJ": float(r.cost) / 1e3,
-            "F0_N": F0, "F_max_N": F_max, "saturated": bool(r.saturated),
-        })
+        rows.append(
+            {
+                "slope_pct": float(slope),
+                "speed_loss_mps": float(r.speed_loss_mps),
+                "time_loss_s": float(r.time_loss_s),
+                "cost_kJ": float(r.cost) / 1e3,
+                "F0_N": F0,
+                "F_max_N": F_max,
+                "saturated": bool(r.saturated),
+            }
+        )
     return rows

@@ -51,7 +51,7 @@ def random_instance(seed, n_s=S, n_t=T, p_inf=0.2):
         init = rng.uniform(0, 3, n_s)
     mask = np.ones(n_t, bool)
     if rng.random() < 0.4:
-        mask[rng.integers(1, n_t + 1):] = False  # padding at the end
+        mask[rng.integers(1, n_t + 1) :] = False  # padding at the end
     return stage, C, init, mask
 
 
@@ -102,12 +102,14 @@ def test_batch_last_axes_equal_single_solves():
     C = np.stack([x[1] for x in inst], -1)
     init = np.stack([x[2] for x in inst], -1)
     mask = np.stack([x[3] for x in inst], -1)
-    rb = jax.jit(lambda *a: dp.viterbi(a[0], dp.dense_transition(a[1], per_step=True),
-                                       a[2], a[3]))(stage, C, init, mask)
+    rb = jax.jit(lambda *a: dp.viterbi(a[0], dp.dense_transition(a[1], per_step=True), a[2], a[3]))(
+        stage, C, init, mask
+    )
     for i, (st_, C_, in_, m_) in enumerate(inst):
         r, _, _, _ = _solve(st_, C_, in_, m_)
         assert float(rb.cost[i]) == float(r.cost) or (
-            np.isinf(float(rb.cost[i])) and np.isinf(float(r.cost)))
+            np.isinf(float(rb.cost[i])) and np.isinf(float(r.cost))
+        )
         if bool(r.feasible):
             np.testing.assert_array_equal(np.asarray(rb.path[:, i]), np.asarray(r.path))
 

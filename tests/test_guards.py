@@ -18,22 +18,39 @@ GEAR = 5  # the gear whose speed we place at w
 def _split_and_guards(vp, P_d, v, lam):
     w = vp.gear_ratio[GEAR] * vp.r_d * v
     s = ps.mode_gear_split(vp, P_d, v, lam)
-    return s.H[:, GEAR], ps.guards(vp, w, lam), ps.interior_region(vp, P_d, w, lam), \
-        ps.closed_form_mode(vp, P_d, w, lam)
+    return (
+        s.H[:, GEAR],
+        ps.guards(vp, w, lam),
+        ps.interior_region(vp, P_d, w, lam),
+        ps.closed_form_mode(vp, P_d, w, lam),
+    )
 
 
 def random_vehicle(eta_e, eta_m, beta, e0_lin, e0_quad, m0_lin, m0_quad):
     """Random efficiencies and frictions; limits far away (the guards' region)."""
     return BASE.replace(
-        eta_e=eta_e, eta_m=eta_m, beta=beta, e0_lin=e0_lin, e0_quad=e0_quad, m0_lin=m0_lin,
-        m0_quad=m0_quad, pm_max=1e9, tm_max=1e9, wm_max=1e5, te_max=np.asarray(BASE.te_max) * 1e3,
+        eta_e=eta_e,
+        eta_m=eta_m,
+        beta=beta,
+        e0_lin=e0_lin,
+        e0_quad=e0_quad,
+        m0_lin=m0_lin,
+        m0_quad=m0_quad,
+        pm_max=1e9,
+        tm_max=1e9,
+        wm_max=1e5,
+        te_max=np.asarray(BASE.te_max) * 1e3,
     )
 
 
 vehicles = st.builds(
     random_vehicle,
-    eta_e=st.floats(0.3, 0.5), eta_m=st.floats(0.8, 0.98), beta=st.floats(3e-7, 3e-6),
-    e0_lin=st.floats(10.0, 60.0), e0_quad=st.floats(0.2, 1.2), m0_lin=st.floats(0.5, 10.0),
+    eta_e=st.floats(0.3, 0.5),
+    eta_m=st.floats(0.8, 0.98),
+    beta=st.floats(3e-7, 3e-6),
+    e0_lin=st.floats(10.0, 60.0),
+    e0_quad=st.floats(0.2, 1.2),
+    m0_lin=st.floats(0.5, 10.0),
     m0_quad=st.floats(0.002, 0.05),
 )
 speeds_rpm = st.floats(700.0, 2200.0)
@@ -97,8 +114,12 @@ def _pd_guard_case(vp, rpm, frac, region):
 
 
 @settings(max_examples=30)
-@given(vp=vehicles, rpm=speeds_rpm, frac=st.floats(0.05, 0.95),
-       region=st.sampled_from(["B3", "B4", "B5"]))
+@given(
+    vp=vehicles,
+    rpm=speeds_rpm,
+    frac=st.floats(0.05, 0.95),
+    region=st.sampled_from(["B3", "B4", "B5"]),
+)
 def test_power_guards_equal_hamiltonians(vp, rpm, frac, region):
     v, lam, P_d, other = _pd_guard_case(vp, rpm, frac, region)
     assume(np.isfinite(P_d))
@@ -109,9 +130,14 @@ def test_power_guards_equal_hamiltonians(vp, rpm, frac, region):
 
 
 @settings(max_examples=20)
-@given(vp=vehicles, rpm=speeds_rpm, frac=st.floats(0.05, 0.95),
-       region=st.sampled_from(["B1", "B2", "B3", "B4", "B5"]), side=st.sampled_from([-1, 1]),
-       pd_frac=st.floats(0.1, 0.9))
+@given(
+    vp=vehicles,
+    rpm=speeds_rpm,
+    frac=st.floats(0.05, 0.95),
+    region=st.sampled_from(["B1", "B2", "B3", "B4", "B5"]),
+    side=st.sampled_from([-1, 1]),
+    pd_frac=st.floats(0.1, 0.9),
+)
 def test_closed_form_map_matches_brute_force(vp, rpm, frac, region, side, pd_frac):
     if region in ("B1", "B2"):
         v = speed_for(vp, rpm)

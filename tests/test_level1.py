@@ -42,15 +42,24 @@ def _relax_all(vp, V, v, grade, lam, prm):
     k = l1.transition_consts(vp, prm.averaged)
     kd = l1.dense_consts(vp, prm.averaged)
     C = sw.switch_cost_matrix(vp, v, grade, lam, prm)
-    return (l1.relax_structured(V, x, k), l1.relax_same_open_time(V, x, kd),
-            dp.relax_dense(V, C), C)
+    return (
+        l1.relax_structured(V, x, k),
+        l1.relax_same_open_time(V, x, kd),
+        dp.relax_dense(V, C),
+        C,
+    )
 
 
 @settings(max_examples=25)
-@given(v=st.floats(0.0, 30.0), grade=st.floats(-0.15, 0.15), lam=st.floats(-3.0, -1.0),
-       averaged=st.sampled_from([0.0, 0.3, 1.0]), weight=st.sampled_from([0.0, 1.0, 2.5]),
-       dts=st.sampled_from([(1.0, 1.0), (1.5, 0.6), (0.4, 0.9)]),
-       seed=st.integers(0, 2**31 - 1))
+@given(
+    v=st.floats(0.0, 30.0),
+    grade=st.floats(-0.15, 0.15),
+    lam=st.floats(-3.0, -1.0),
+    averaged=st.sampled_from([0.0, 0.3, 1.0]),
+    weight=st.sampled_from([0.0, 1.0, 2.5]),
+    dts=st.sampled_from([(1.0, 1.0), (1.5, 0.6), (0.4, 0.9)]),
+    seed=st.integers(0, 2**31 - 1),
+)
 def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts, seed):
     rng = np.random.default_rng(seed)
     V = rng.normal(0, 2e4, 48)
@@ -65,8 +74,9 @@ def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts
         b, a = np.asarray(b), np.asarray(a).astype(int)
         assert np.array_equal(np.isfinite(b), fin)
         np.testing.assert_allclose(b[fin], bd[fin], rtol=1e-12, atol=1e-6)
-        np.testing.assert_allclose((V[a] + C[a, np.arange(48)])[fin], bd[fin], rtol=1e-12,
-                                   atol=1e-6)
+        np.testing.assert_allclose(
+            (V[a] + C[a, np.arange(48)])[fin], bd[fin], rtol=1e-12, atol=1e-6
+        )
 
 
 # ----------------------------------------------------------------------- full horizon DP
@@ -99,8 +109,9 @@ def _check_result(r, vp, v, grade, lam, prm, init_state, mask=None):
     state = np.asarray(r.state)
     prev = np.concatenate([[init_state], state[:-1]])
     sc = np.asarray(_tcost(vp, prev, state, v, grade, np.broadcast_to(lam, v.shape), prm))
-    np.testing.assert_allclose(np.asarray(r.switch_cost), np.where(mask, sc, 0.0), rtol=1e-9,
-                               atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(r.switch_cost), np.where(mask, sc, 0.0), rtol=1e-9, atol=1e-6
+    )
     H = np.asarray(r.H)
     H = np.where(np.isfinite(H), H, 0.0)
     np.testing.assert_allclose(float(r.cost), np.sum(H * DT) + np.sum(r.switch_cost), rtol=1e-10)
@@ -123,8 +134,9 @@ def test_level1_full_equals_numpy_viterbi():
 
 def test_switching_costs_reduce_switching():
     vp, P_d, v, grade, lam = synthetic_route(seed=1)
-    free = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0,
-                          params=PRM._replace(weight=0.0))
+    free = l1.level1_full(
+        vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM._replace(weight=0.0)
+    )
     paid = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
     n = lambda r: int(r.n_mode_switches) + int(r.n_gear_switches)  # noqa: E731
     assert n(paid) <= n(free)
@@ -157,8 +169,9 @@ def test_infeasible_step_passes_through():
 def test_mpc_with_full_horizon_equals_full_dp():
     vp, P_d, v, grade, lam = synthetic_route(seed=3)
     full = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.ME, init_gear=5, params=PRM)
-    mpc = l1.level1_mpc(vp, P_d, v, grade, lam, DT, init_mode=ps.ME, init_gear=5, params=PRM,
-                        horizon=T)
+    mpc = l1.level1_mpc(
+        vp, P_d, v, grade, lam, DT, init_mode=ps.ME, init_gear=5, params=PRM, horizon=T
+    )
     np.testing.assert_allclose(float(mpc.cost), float(full.cost), rtol=1e-12)
     np.testing.assert_array_equal(np.asarray(mpc.state), np.asarray(full.state))
 
@@ -189,14 +202,25 @@ def test_batch_equals_single_and_does_not_recompile():
     for i in range(2):
         for j, m in enumerate((20000.0, 30000.0)):
             for k_, la in enumerate(lam):
-                r = l1.level1_full(VP.replace(mass=m), P_d[i], v[i], grade[i], la, DT, mask[i],
-                                   ps.MO, 0, PRM)
+                r = l1.level1_full(
+                    VP.replace(mass=m), P_d[i], v[i], grade[i], la, DT, mask[i], ps.MO, 0, PRM
+                )
                 np.testing.assert_allclose(float(rb.cost[i, j, k_]), float(r.cost), rtol=1e-10)
                 np.testing.assert_array_equal(np.asarray(rb.state[i, j, k_]), np.asarray(r.state))
     n0 = l1.TRACES["level1_batch"]
     vps2 = stack_vehicles([VP.replace(mass=22000.0), VP.replace(mass=41000.0, I_e=4.0)])
-    rb2 = l1.level1_batch(vps2, P_d * 1.1, v, grade, mask, lam - 0.3, 0.5, ps.ME, 3,
-                          PRM._replace(lambda_t=-30e3, averaged=1.0))
+    rb2 = l1.level1_batch(
+        vps2,
+        P_d * 1.1,
+        v,
+        grade,
+        mask,
+        lam - 0.3,
+        0.5,
+        ps.ME,
+        3,
+        PRM._replace(lambda_t=-30e3, averaged=1.0),
+    )
     jax.block_until_ready(rb2)
     assert l1.TRACES["level1_batch"] == n0  # new values, same shapes: no new trace
     assert not np.allclose(np.asarray(rb2.cost), np.asarray(rb.cost))

@@ -26,8 +26,7 @@ def ref_split(vp, P_d, v, lam, n=N_GRID):
     spacing = np.zeros((4, n_g))
     for g in range(n_g):
         w = f["gear_ratio"][g] * f["r_d"] * v
-        for mode, (ce, cm) in enumerate(zip(ps.ENGINE_CONNECTED, ps.MOTOR_CONNECTED,
-                                            strict=True)):
+        for mode, (ce, cm) in enumerate(zip(ps.ENGINE_CONNECTED, ps.MOTOR_CONNECTED, strict=True)):
             if cm and f["has_motor"] < 0.5:
                 continue
             we, k = w, 1.0
@@ -103,8 +102,14 @@ def test_conventional_split_matches_brute_force(P_d, v, lam):
 
 def test_split_special_points():
     """Launch slip, standstill, hard braking, demand beyond every limit."""
-    for P_d, v, lam in [(50e3, 0.5, -2.0), (0.0, 0.0, -2.0), (-5e5, 15.0, -2.2),
-                        (2e6, 15.0, -2.0), (11e3, 25 / 3.6, -1.97), (113e3, 25 / 3.6, -1.97)]:
+    for P_d, v, lam in [
+        (50e3, 0.5, -2.0),
+        (0.0, 0.0, -2.0),
+        (-5e5, 15.0, -2.2),
+        (2e6, 15.0, -2.0),
+        (11e3, 25 / 3.6, -1.97),
+        (113e3, 25 / 3.6, -1.97),
+    ]:
         _check(VP, P_d, v, lam)
     s = split_j(VP, 2e6, 15.0, -2.0)
     assert not np.any(np.asarray(s.feasible))

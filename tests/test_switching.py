@@ -18,8 +18,16 @@ cost_matrix_j = jax.jit(sw.switch_cost_matrix)
 
 # Table A1 of the paper (kJ, lambda_b = -2.2), direction costs and averages of linked events
 PAPER_A1 = {
-    "G_down_Mm": 10, "G_down_Me": 20, "G_down_Mc": 30, "G_up": 0,
-    "Me->Mm": 16, "Mm->Me": 31, "Me->Mc": 16, "Mc->Me": 0, "Mm->Mc": 31, "Mc->Mm": 0,
+    "G_down_Mm": 10,
+    "G_down_Me": 20,
+    "G_down_Mc": 30,
+    "G_up": 0,
+    "Me->Mm": 16,
+    "Mm->Me": 31,
+    "Me->Mc": 16,
+    "Mc->Me": 0,
+    "Mm->Mc": 31,
+    "Mc->Mm": 0,
 }
 PAPER_A1_AVG = {"Me->Mm": 24, "Me->Mc": 8, "Mm->Mc": 16}
 
@@ -128,8 +136,12 @@ def ref_cost_matrix(vp, v, grade, lam, prm):
 
 
 @settings(max_examples=10)
-@given(v=st.floats(0.5, 25.0), grade=st.floats(-0.12, 0.12), lam=st.floats(-3.0, -1.2),
-       averaged=st.sampled_from([0.0, 0.5, 1.0]))
+@given(
+    v=st.floats(0.5, 25.0),
+    grade=st.floats(-0.12, 0.12),
+    lam=st.floats(-3.0, -1.2),
+    averaged=st.sampled_from([0.0, 0.5, 1.0]),
+)
 def test_cost_matrix_matches_reference(v, grade, lam, averaged):
     prm = sw.SwitchCostParams(averaged=averaged, lambda_t=-25e3, lambda_k=-2.2)
     C = np.asarray(cost_matrix_j(VP, v, grade, lam, prm))

@@ -333,10 +333,18 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
     mprev, gprev = prev // n_g, prev % n_g
     z = lambda a: jnp.where(mask, a, 0.0)  # noqa: E731
     return Level1Result(
-        mode=mode.astype(jnp.int32), gear=gear.astype(jnp.int32), state=path.astype(jnp.int32),
-        P_b=z(pick(tb.split.P_b)), P_e=z(pick(tb.split.P_e)), P_m=z(pick(tb.split.P_m)),
-        P_f=z(pick(tb.split.P_f)), P_brake=z(pick(tb.split.P_brake)), H=z(Hk),
-        w=z(pick(tb.split.w)), switch_cost=sc, cost=cost,
+        mode=mode.astype(jnp.int32),
+        gear=gear.astype(jnp.int32),
+        state=path.astype(jnp.int32),
+        P_b=z(pick(tb.split.P_b)),
+        P_e=z(pick(tb.split.P_e)),
+        P_m=z(pick(tb.split.P_m)),
+        P_f=z(pick(tb.split.P_f)),
+        P_brake=z(pick(tb.split.P_brake)),
+        H=z(Hk),
+        w=z(pick(tb.split.w)),
+        switch_cost=sc,
+        cost=cost,
         n_mode_switches=jnp.sum(mask & (mode != mprev)).astype(jnp.int32),
         n_gear_switches=jnp.sum(mask & (gear != gprev)).astype(jnp.int32),
         n_infeasible=jnp.sum(mask & tb.none_feasible).astype(jnp.int32),
@@ -381,7 +389,15 @@ def _defaults(P_d, mask, init_mode, init_gear, params):
 
 
 def level1_full(
-    vp: VehicleParams, P_d, v, grade, lam, dt, mask=None, init_mode=None, init_gear=0,
+    vp: VehicleParams,
+    P_d,
+    v,
+    grade,
+    lam,
+    dt,
+    mask=None,
+    init_mode=None,
+    init_gear=0,
     params: sw.SwitchCostParams | None = None,
 ) -> Level1Result:
     """Level 1 over the full horizon: Hamiltonians, switching costs and the Viterbi DP.
@@ -415,8 +431,15 @@ def _level1_mpc(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, 
         win = lambda a: jax.lax.dynamic_slice_in_dim(a, k, N)  # noqa: E731
         init = jnp.where(started, jnp.where(jnp.arange(S) == prev, 0.0, jnp.inf), init0)
         s0, _ = solve_dp(
-            vp.dt_M, vp.dt_G, win(stage_p), jax.tree_util.tree_map(win, xs_p), tb.consts,
-            tb.dconsts, init, win(mask_p), first=True,
+            vp.dt_M,
+            vp.dt_G,
+            win(stage_p),
+            jax.tree_util.tree_map(win, xs_p),
+            tb.consts,
+            tb.dconsts,
+            init,
+            win(mask_p),
+            first=True,
         )
         s = jnp.where(mask[k], s0, prev)
         return (s, started | mask[k]), s
@@ -432,8 +455,18 @@ _level1_mpc_jit = jax.jit(_level1_mpc, static_argnames=("horizon",))
 
 
 def level1_mpc(
-    vp: VehicleParams, P_d, v, grade, lam, dt, mask=None, init_mode=None, init_gear=0,
-    params: sw.SwitchCostParams | None = None, *, horizon: int,
+    vp: VehicleParams,
+    P_d,
+    v,
+    grade,
+    lam,
+    dt,
+    mask=None,
+    init_mode=None,
+    init_gear=0,
+    params: sw.SwitchCostParams | None = None,
+    *,
+    horizon: int,
 ) -> Level1Result:
     """Level 1 as receding-horizon control (MPC): at each step k solve the DP over steps
     k .. k + horizon - 1 from the current state, apply its first decision, repeat.
@@ -492,7 +525,15 @@ _level1_batch_jit = jax.jit(_level1_batch)
 
 
 def level1_batch(
-    vps: VehicleParams, P_d, v, grade, mask, lam, dt, init_mode=None, init_gear=0,
+    vps: VehicleParams,
+    P_d,
+    v,
+    grade,
+    mask,
+    lam,
+    dt,
+    init_mode=None,
+    init_gear=0,
     params: sw.SwitchCostParams | None = None,
 ) -> Level1Result:
     """Full-horizon Level 1 for routes x vehicles x lambda_b in one jitted call.
@@ -513,8 +554,21 @@ def level1_batch(
 
 
 __all__ = [
-    "DenseConsts", "Level1Result", "TransitionConsts", "TransitionInputs", "dense_consts",
-    "fast_transition", "level1_batch", "level1_full", "level1_mpc", "relax_same_open_time",
-    "relax_structured", "solve_dp", "structured_transition", "transition_consts",
-    "transition_cost", "transition_inputs", "TRACES",
+    "DenseConsts",
+    "Level1Result",
+    "TransitionConsts",
+    "TransitionInputs",
+    "dense_consts",
+    "fast_transition",
+    "level1_batch",
+    "level1_full",
+    "level1_mpc",
+    "relax_same_open_time",
+    "relax_structured",
+    "solve_dp",
+    "structured_transition",
+    "transition_consts",
+    "transition_cost",
+    "transition_inputs",
+    "TRACES",
 ]

@@ -118,8 +118,16 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     kink_fuel = pb_of_pm(P_d - _safe_div(pe0, k))
     kink_brake = pb_of_pm(P_d - e_lo)
     cands = jnp.stack(
-        [lo, hi, jnp.zeros_like(lo), stat_dis, stat_chg, kink_fuel, kink_brake,
-         jnp.full_like(lo, -0.5 / vp.beta)]
+        [
+            lo,
+            hi,
+            jnp.zeros_like(lo),
+            stat_dis,
+            stat_chg,
+            kink_fuel,
+            kink_brake,
+            jnp.full_like(lo, -0.5 / vp.beta),
+        ]
     ).astype(dtype)
     cands = jnp.clip(cands, lo, hi)
 
@@ -134,8 +142,14 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     z = jnp.zeros_like(H)
     pick = lambda x: jnp.where(feasible, x, z)  # noqa: E731
     return Split(
-        H=H, P_b=pick(cands[i]), P_e=pick(P_e[i]), P_m=pick(P_m[i]), P_f=pick(P_f[i]),
-        P_brake=pick(P_brake), w=w, feasible=feasible,
+        H=H,
+        P_b=pick(cands[i]),
+        P_e=pick(P_e[i]),
+        P_m=pick(P_m[i]),
+        P_f=pick(P_f[i]),
+        P_brake=pick(P_brake),
+        w=w,
+        feasible=feasible,
     )
 
 
