@@ -336,6 +336,7 @@ def load_config(path: str | Path) -> SweepConfig:
                              f"({', '.join(strategies)})")
         if not isinstance(v, dict):
             raise SweepError(f"{src}: options.{k}: expected a table")
+        strategy_options(v, f"{src}: options.{k}")
 
     # vehicle
     vspec = doc.get("vehicle", "reference_truck")
@@ -389,6 +390,29 @@ def load_config(path: str | Path) -> SweepConfig:
         strategies=tuple(strategies), grid=grid, batch_size=batch_size, dt=dt, ds=ds,
         precision=precision, options={k: dict(v) for k, v in options.items()},
     )
+
+
+def strategy_options(d: dict | None, where: str = "options"):
+    """`jaxems.strategies.Options` from a table of the sweep file (None: the defaults).
+
+    Raises `SweepError` naming the option for an unknown name or a bad value.
+    """
+    from . import strategies as st
+
+    if not d:
+        return None
+    bad = sorted(set(d) - set(st.Options._fields))
+    if bad:
+        raise SweepError(f"{where}: unknown option {bad[0]!r} (options: "
+                         f"{', '.join(st.Options._fields)})")
+    opts = st.Options()._replace(**d)
+    check = getattr(st, "_check_options", None)
+    if check is not None:
+        try:
+            check(opts)
+        except ValueError as e:
+            raise SweepError(f"{where}: {e}") from None
+    return opts
 
 
 # ------------------------------------------------------------------------------------ chunks
@@ -446,7 +470,7 @@ class ChunkTask:
     dt: float
     n_steps: int
     precision: str
-    options: dict | None
+    options: Any  # jaxems.strategies.Options or None
 
 
 # Backend compilations seen by this process (a `jax.monitoring` listener; for the tests and the
@@ -615,6 +639,29 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     meta = {"fingerprint": fp, "canonical": canon, "source": str(cfg.source),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     _atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
+
+
+@contextlib.contextmanager
+def dir_lock(out: Path):
+    """Hold an exclusive lock on a results directory (one sweep process per directory).
+
+    The lock is an `fcntl.flock` on ``DIR/.lock``; the system releases it when the process
+    ends, also on ``kill -9``. Without fcntl (Windows) nothing is locked.
+    """
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    fh = open(out / ".lock", "a+")
+    try:
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise SweepError(f"{out}: another jaxems sweep is running in this directory") from None
+        yield
+    finally:
+        fh.close()
 
 
 def finished_chunks(out: Path) -> set[str]:
@@ -839,6 +886,13 @@ def run_sweep(
     cfg = load_config(sweep_file)
     out = Path(out) if out is not None else default_out(sweep_file)
     prepare_dir(cfg, out, resume=resume)
+    with dir_lock(out):
+        return _run_locked(cfg, out, workers=workers, scheduler=scheduler, quiet=quiet,
+                           report=report, client=client, on_chunk=on_chunk)
+
+
+def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, report, client,
+                on_chunk) -> SweepSummary:
     _clean_temporaries(out)
     chunks = plan_chunks(cfg)
     points = _full_points(cfg)
@@ -852,7 +906,7 @@ def run_sweep(
     stats: list[dict] = []
     own_client = None
     cluster = None
-    if client is None:
+    if client is None and todo:
         own_client, cluster = _executor(workers, scheduler)
         client = own_client
     backend = "in-process" if client is None else (
@@ -867,7 +921,8 @@ def run_sweep(
         def task_of(c: Chunk) -> ChunkTask:
             vb = vehicle_batch(cfg.vehicle, [points[i] for i in c.grid_index])
             return ChunkTask(chunk=c, vehicles=vb, dt=cfg.dt, n_steps=steps[c.route_index],
-                             precision=cfg.precision, options=cfg.options.get(c.strategy))
+                             precision=cfg.precision,
+                             options=strategy_options(cfg.options.get(c.strategy)))
 
         def finish(c: Chunk, rows: dict) -> None:
             df = chunk_frame(cfg, c, rows, points)
@@ -888,9 +943,10 @@ def run_sweep(
             route_futs = {ri: client.scatter(cfg.routes[ri].route, broadcast=False)
                           for ri in steps}
             futs = {}
+            token = cfg.fingerprint()[:12]
             for c in todo:
                 f = client.submit(_compute_remote, task_of(c), route_futs[c.route_index],
-                                  key=f"jaxems-{cfg.fingerprint()[:12]}-{c.id}", pure=False)
+                                  key=f"jaxems-{token}-{c.id}", pure=False)
                 futs[f] = c
             for f in as_completed(futs):
                 finish(futs[f], f.result())

@@ -1,0 +1,217 @@
+"""Sweep files, grids, chunk plans and the savings columns: no JAX compilation here."""
+
+from __future__ import annotations
+
+import math
+import textwrap
+
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hs
+
+from jaxems import sweep as sw
+from jaxems.params import load_vehicle
+
+GOOD = """
+routes = ["short_track"]
+strategies = ["conventional", "baseline"]
+batch_size = 4
+[grid]
+mass_kg = [20000, 30000, 40000]
+battery_MJ = [2, 4]
+"""
+
+
+def write(tmp_path, text, name="s.toml"):
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text), encoding="utf-8")
+    return p
+
+
+def test_good_file_parses(tmp_path):
+    cfg = sw.load_config(write(tmp_path, GOOD))
+    assert [r.name for r in cfg.routes] == ["short_track"]
+    assert cfg.strategies == ("conventional", "baseline")
+    assert cfg.grid == {"mass_kg": (20000.0, 30000.0, 40000.0), "battery_MJ": (2.0, 4.0)}
+    assert cfg.grid_size == 6 and cfg.batch_size == 4 and cfg.precision == "float32"
+    pts = cfg.points()
+    assert pts[0] == {"mass_kg": 20000.0, "battery_MJ": 2.0}
+    assert pts[1] == {"mass_kg": 20000.0, "battery_MJ": 4.0}  # first key slowest
+    assert len({tuple(p.values()) for p in pts}) == 6
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("colour = 'red'\n" + GOOD, r"s\.toml: unknown key 'colour'"),
+        (GOOD.replace("battery_MJ", "battery_kWh"),
+         r"s\.toml: grid\.battery_kWh: unknown grid key"),
+        (GOOD.split("[grid]")[0] + "[grid]\n", r"s\.toml: grid: empty"),
+        (GOOD.split("[grid]")[0], r"s\.toml: grid: empty"),
+        (GOOD.replace("[2, 4]", "[]"), r"grid\.battery_MJ: empty list"),
+        (GOOD.replace("20000, 30000", "0, 30000"), r"grid\.mass_kg\[0\]: must be > 0"),
+        (GOOD.replace("20000, 30000", "-5, 30000"), r"grid\.mass_kg\[0\]: must be > 0"),
+        (GOOD.replace("[2, 4]", "[2, -4]"), r"grid\.battery_MJ\[1\]: must be > 0"),
+        (GOOD.replace("[2, 4]", "[2, 2]"), r"grid\.battery_MJ: a value is listed twice"),
+        (GOOD.replace("[2, 4]", "['two']"), r"grid\.battery_MJ\[0\]: expected a number"),
+        (GOOD + "E_b_max = [1e6]\n", r"grid\.E_b_max: sets the same vehicle field"),
+        (GOOD + "te_max = [1, 2]\n", r"grid\.te_max: te_max is a curve"),
+        (GOOD + "initial_soc = [1.5]\n", r"grid\.initial_soc\[0\]: must be in \[0, 1\]"),
+        (GOOD.replace('"short_track"', '"no_such_route"'),
+         r"s\.toml: routes: 'no_such_route': no such route file"),
+        (GOOD.replace('"short_track"', '"nothing/*.csv"'), r"routes: 'nothing/\*\.csv' matches no"),
+        (GOOD.replace('"baseline"', '"magic"'), r"strategies: unknown strategy 'magic'"),
+        (GOOD.replace('"baseline"', '"conventional"'), r"strategies: listed twice"),
+        (GOOD.replace("batch_size = 4", "batch_size = 0"), r"batch_size: must be > 0"),
+        (GOOD.replace("batch_size = 4", "batch_size = 2.5"), r"batch_size: expected a whole"),
+        (GOOD + "[options.baseline]\nlam00 = -2\n", r"options\.baseline: unknown option 'lam00'"),
+        (GOOD + "[options.multilevel]\nn_iter = 2\n", r"options\.multilevel: not one of"),
+        (GOOD.replace("routes", "vehicle = 'no_truck'\nroutes"), r"vehicle: no_truck"),
+        ("routes = [", r"not valid TOML"),
+    ],
+)
+def test_bad_sweep_files_are_refused_naming_key_and_file(tmp_path, text, match):
+    with pytest.raises(sw.SweepError, match=match):
+        sw.load_config(write(tmp_path, text))
+
+
+def test_bad_route_file_is_named(tmp_path):
+    (tmp_path / "bad.csv").write_text("distance_m,speed_limit_km_h,gradient_pct,stop_s\n"
+                                      "0,25,0,0\n100,abc,0,0\n", encoding="utf-8")
+    text = GOOD.replace('"short_track"', '"bad.csv"')
+    with pytest.raises(sw.SweepError, match=r"routes: .*bad\.csv: line 3, column speed"):
+        sw.load_config(write(tmp_path, text))
+
+
+def test_bad_input_stops_before_any_computation(tmp_path, capsys):
+    """The CLI exits 1 with one line naming the key; no results directory is created."""
+    out = tmp_path / "out"
+    p = write(tmp_path, GOOD.replace("20000, 30000", "0, 30000"))
+    assert sw.main([str(p), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "grid.mass_kg[0]: must be > 0" in err and "s.toml" in err
+    assert not out.exists()
+
+
+def test_globs_relative_paths_and_ranges(tmp_path):
+    d = tmp_path / "routes"
+    d.mkdir()
+    src = sw.load_config(write(tmp_path, GOOD)).routes[0].path.read_text(encoding="utf-8")
+    for n in ("a", "b"):
+        (d / f"{n}.csv").write_text(src, encoding="utf-8")
+    text = GOOD.replace('["short_track"]', '["routes/*.csv", "routes/a.csv", "short_track"]')
+    text = text.replace("[2, 4]", "{start = 2, stop = 6, num = 3}")
+    cfg = sw.load_config(write(tmp_path, text))
+    assert [r.name for r in cfg.routes] == ["a", "b", "short_track"]  # a listed twice: once
+    assert cfg.grid["battery_MJ"] == (2.0, 4.0, 6.0)
+
+
+def test_fingerprint_ignores_comments_but_not_values(tmp_path):
+    a = sw.load_config(write(tmp_path, GOOD, "a.toml"))
+    b = sw.load_config(write(tmp_path, "# a comment\n" + GOOD, "b.toml"))
+    c = sw.load_config(write(tmp_path, GOOD.replace("40000", "45000"), "c.toml"))
+    assert a.fingerprint() == b.fingerprint() != c.fingerprint()
+
+
+def test_changed_sweep_in_existing_directory_is_refused(tmp_path):
+    out = tmp_path / "out"
+    sw.prepare_dir(sw.load_config(write(tmp_path, GOOD)), out)
+    sw.prepare_dir(sw.load_config(write(tmp_path, "# comment only\n" + GOOD)), out)  # same
+    changed = sw.load_config(write(tmp_path, GOOD.replace("40000", "45000")))
+    with pytest.raises(sw.SweepError, match=r"holds the results of a different sweep "
+                                            r"\(changed: grid;.*another --out"):
+        sw.prepare_dir(changed, out)
+    with pytest.raises(sw.SweepError, match="nothing to resume"):
+        sw.prepare_dir(changed, tmp_path / "fresh", resume=True)
+
+
+def test_grid_keys_map_to_si_fields():
+    base = load_vehicle()
+    pts = [{"mass_kg": 25000.0, "battery_MJ": 3.0, "motor_power_kW": 100.0,
+            "motor_torque_Nm": 400.0, "beta_per_W": 2e-6, "engine_efficiency": 0.4,
+            "initial_soc": 0.3, "c_r": 0.005}] * 3
+    vb = sw.vehicle_batch(base, pts)
+    assert all(np.shape(x)[:1] == (3,) for x in vb)  # every leaf batched
+    np.testing.assert_array_equal(vb.mass, 25000.0)
+    np.testing.assert_array_equal(vb.E_b_max, 3e6)
+    np.testing.assert_array_equal(vb.pm_max, 1e5)
+    np.testing.assert_array_equal(vb.tm_max, 400.0)
+    np.testing.assert_array_equal(vb.beta, 2e-6)
+    np.testing.assert_array_equal(vb.eta_e, 0.4)
+    np.testing.assert_array_equal(vb.soc0, 0.3)
+    np.testing.assert_array_equal(vb.c_r, 0.005)
+    np.testing.assert_array_equal(vb.gear_ratio, np.broadcast_to(base.gear_ratio, (3, 12)))
+    np.testing.assert_array_equal(vb.v_cruise, base.v_cruise)
+
+
+@settings(max_examples=30)
+@given(sizes=hs.lists(hs.integers(1, 4), min_size=1, max_size=3), batch=hs.integers(1, 7),
+       n_strat=hs.integers(1, 3))
+def test_chunks_cover_every_point_once_with_equal_shapes(tmp_path_factory, sizes, batch,
+                                                         n_strat):
+    tmp = tmp_path_factory.mktemp("plan")
+    keys = ["mass_kg", "battery_MJ", "motor_power_kW"][: len(sizes)]
+    grid = "\n".join(f"{k} = {[float(10 + i) for i in range(n)]}" for k, n in
+                     zip(keys, sizes, strict=True))
+    strat = ["conventional", "baseline", "multilevel"][:n_strat]
+    text = (f"routes = ['short_track']\nstrategies = {strat}\nbatch_size = {batch}\n"
+            f"[grid]\n{grid}\n")
+    cfg = sw.load_config(write(tmp, text))
+    chunks = sw.plan_chunks(cfg)
+    G = math.prod(sizes)
+    assert len(chunks) == n_strat * math.ceil(G / batch)
+    assert len({c.id for c in chunks}) == len(chunks)
+    assert [c.id for c in sw.plan_chunks(cfg)] == [c.id for c in chunks]  # deterministic
+    for s in strat:
+        mine = [c for c in chunks if c.strategy == s]
+        real = [i for c in mine for i in c.grid_index[: c.n_real]]
+        assert sorted(real) == list(range(G))  # every point exactly once
+        assert all(len(c.grid_index) == batch for c in mine)  # one shape per route
+        assert all(set(c.grid_index[c.n_real:]) <= {c.grid_index[c.n_real - 1]} for c in mine)
+
+
+def _savings_reference(df: pd.DataFrame, ref: str) -> np.ndarray:
+    """Plain loop: saving of each row against `ref` on the same route and grid point."""
+    out = np.full(len(df), np.nan)
+    rows = df.to_dict("records")
+
+    def corrected(r):
+        lam, dE = r["lambda_b"], r["delta_Eb_J"]
+        if r["strategy"] == "conventional" or not (np.isfinite(lam) and np.isfinite(dE)):
+            return r["fuel_J"]
+        return r["fuel_J"] + lam * dE
+
+    for i, r in enumerate(rows):
+        for q in rows:
+            if (q["route"], q["grid_index"], q["strategy"]) == (r["route"], r["grid_index"], ref):
+                if r["status"] == "ok" and q["status"] == "ok":
+                    out[i] = 100.0 * (corrected(q) - corrected(r)) / corrected(q)
+    return out
+
+
+def test_savings_against_a_loop_reference():
+    rng = np.random.default_rng(3)
+    rows = []
+    for route in ("a", "b"):
+        for g in range(3):
+            for s in ("conventional", "baseline", "multilevel"):
+                if route == "b" and g == 2 and s == "conventional":
+                    continue  # reference missing -> NaN
+                rows.append({
+                    "route": route, "grid_index": g, "strategy": s,
+                    "fuel_J": rng.uniform(5e6, 2e7),
+                    "lambda_b": np.nan if s == "conventional" else rng.uniform(-3, -1),
+                    "delta_Eb_J": 0.0 if s == "conventional" else rng.uniform(-1e6, 1e6),
+                    "status": "infeasible-route" if (route, g, s) == ("a", 1, "baseline")
+                    else "ok",
+                })
+    df = sw.add_savings(pd.DataFrame(rows))
+    for ref in ("conventional", "baseline"):
+        np.testing.assert_allclose(df[f"saving_vs_{ref}_pct"].to_numpy(),
+                                   _savings_reference(df, ref), rtol=1e-12, equal_nan=True)
+    # sanity of the reference itself: the reference strategy saves exactly 0 against itself
+    conv = df[(df.strategy == "conventional") & (df.status == "ok")]
+    np.testing.assert_array_equal(conv["saving_vs_conventional_pct"], 0.0)
+    assert df["saving_vs_conventional_pct"].isna().sum() == 3  # b/2: no reference; a/1 failed
