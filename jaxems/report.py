@@ -453,4 +453,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the imported module's main, so that what Dask pickles lives in jaxems.report, not __main__
+    from jaxems.report import main as _main
+
+    sys.exit(_main())

@@ -1023,4 +1023,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the imported module's main, so that what Dask pickles lives in jaxems.sweep, not __main__
+    from jaxems.sweep import main as _main
+
+    sys.exit(_main())

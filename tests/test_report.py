@@ -1,0 +1,134 @@
+"""Sweep reports on synthetic results (no JAX): fleet savings, best battery, the HTML page."""
+
+from __future__ import annotations
+
+import base64
+import itertools
+import json
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from jaxems import report as rp
+from jaxems import sweep as sw
+
+MASSES = (20000.0, 30000.0, 40000.0)
+BATTERIES = (2.0, 4.0, 8.0)
+ROUTES = ("hilly", "flat")
+STRATS = ("conventional", "baseline", "multilevel")
+
+
+def synthetic(seed=0, drop=()):
+    """A results table shaped like load_sweep's, with fuel falling with battery size."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for r, route in enumerate(ROUTES):
+        for g, (m, b) in enumerate(itertools.product(MASSES, BATTERIES)):
+            conv = 1e7 * (1 + r) * m / 20000 * rng.uniform(0.95, 1.05)
+            for s in STRATS:
+                if (route, g, s) in drop:
+                    continue
+                k = {"conventional": 1.0, "baseline": 0.93, "multilevel": 0.9}[s]
+                fuel = conv * (k - (0 if s == "conventional" else 0.01 * np.log(b)))
+                rows.append({
+                    "route": route, "strategy": s, "grid_index": g, "mass_kg": m,
+                    "battery_MJ": b, "length_m": 1e4 * (1 + r), "trip_time_s": 600.0,
+                    "fuel_J": fuel, "fuel_l_per_100km": fuel / 42.8e6 / 0.832 / (0.1 * (1 + r)),
+                    "delta_Eb_J": 0.0 if s == "conventional" else rng.uniform(-1e5, 1e5),
+                    "Eb_min_J": 0.0, "Eb_max_J": b * 1e6, "mode_switches": 3,
+                    "gear_switches": 7, "lambda_b": np.nan if s == "conventional" else -2.0,
+                    "max_speed_shortfall_mps": 0.1,
+                    "status": "infeasible-route" if (route, g) == ("hilly", 8) else "ok",
+                    "wall_s": 0.01, "chunk": f"{route}-{s}",
+                })
+    return sw.add_savings(pd.DataFrame(rows))
+
+
+def write_dir(tmp_path, df):
+    """A sweep directory holding df as chunk files and a sweep.json for its grid."""
+    canon = {"format": 1, "routes": [{"name": r, "sha256": "0"} for r in ROUTES],
+             "strategies": list(STRATS),
+             "grid": {"mass_kg": list(MASSES), "battery_MJ": list(BATTERIES)}}
+    d = tmp_path / "sweep"
+    (d / "chunks").mkdir(parents=True)
+    (d / "sweep.json").write_text(json.dumps({"fingerprint": "x", "canonical": canon}))
+    for (route, s), g in df.groupby(["route", "strategy"]):
+        g.drop(columns=["fuel_corrected_J", "saving_vs_conventional_pct",
+                        "saving_vs_baseline_pct"]).to_parquet(d / "chunks" / f"{route}-{s}.parquet")
+    return d
+
+
+def test_load_sweep_merges_chunks_in_sweep_order(tmp_path):
+    df = synthetic()
+    d = write_dir(tmp_path, df)
+    got = sw.load_sweep(d)
+    assert list(got["route"].unique()) == list(ROUTES)
+    assert list(got["strategy"][:3]) == list(STRATS)
+    assert (np.diff(got[got.route == "hilly"]["grid_index"].to_numpy()) >= 0).all()
+    key = ["route", "grid_index", "strategy"]
+    pd.testing.assert_frame_equal(
+        got.sort_values(key).reset_index(drop=True)[df.columns],
+        df.sort_values(key).reset_index(drop=True), check_exact=False, rtol=1e-12)
+
+
+def test_fleet_saving_and_best_battery_against_loops():
+    df = synthetic(1)
+    fleet = rp.fleet_saving(df, "conventional")
+    for row in fleet.itertuples():
+        num = den = 0.0
+        for route in ROUTES:
+            sel = (df.route == route) & (df.mass_kg == row.mass_kg) & (df.battery_MJ ==
+                                                                      row.battery_MJ)
+            a = df[sel & (df.strategy == row.strategy)]
+            c = df[sel & (df.strategy == "conventional")]
+            if a.status.iloc[0] == "ok" and c.status.iloc[0] == "ok":
+                num += c.fuel_corrected_J.iloc[0] - a.fuel_corrected_J.iloc[0]
+                den += c.fuel_corrected_J.iloc[0]
+        assert row.saving_pct == pytest.approx(100 * num / den, rel=1e-12)
+    best = rp.best_battery(fleet[fleet.strategy != "conventional"])
+    assert len(best) == 2 * len(MASSES)
+    for row in best.itertuples():
+        f = fleet[(fleet.strategy == row.strategy) & (fleet.mass_kg == row.mass_kg)]
+        top = f.saving_pct.max()
+        assert row.best_saving_pct == top
+        assert row.best_battery_MJ == f.loc[f.saving_pct.idxmax(), "battery_MJ"]
+        close = f[f.saving_pct >= top - rp.SUFFICIENT_PP]
+        assert row.sufficient_battery_MJ == close.battery_MJ.min()
+        assert row.sufficient_battery_MJ <= row.best_battery_MJ
+
+
+def test_report_page_is_self_contained_with_every_figure(tmp_path, capsys):
+    d = write_dir(tmp_path, synthetic())
+    assert rp.main([str(d)]) == 0
+    page = d / "report.html"
+    assert capsys.readouterr().out.strip() == str(page)
+    text = page.read_text(encoding="utf-8")
+    pngs = {"saving_heatmap_all_routes.png", "saving_heatmap_hilly.png",
+            "saving_heatmap_flat.png", "fuel_per_strategy.png", "saving_distribution.png",
+            "best_battery.png"}
+    assert {p.name for p in d.glob("*.png")} == pngs
+    embedded = re.findall(r'src="data:image/png;base64,([A-Za-z0-9+/=]+)"', text)
+    assert len(embedded) == len(pngs)
+    assert {base64.b64decode(e) for e in embedded} == {(d / n).read_bytes() for n in pngs}
+    assert not re.search(r'(src|href)="(https?:)?//', text)  # nothing to fetch
+    assert "<script" not in text
+    assert "infeasible-route" in text  # the failed configuration is listed
+    assert "best battery per mass" in text
+
+
+def test_report_of_an_unfinished_sweep_and_without_references(tmp_path):
+    drop = {(r, g, s) for r in ROUTES for g in range(9) for s in ("conventional", "baseline")}
+    df = synthetic(2, drop=drop)  # multilevel only: no reference strategy
+    d = write_dir(tmp_path, df)
+    page = rp.write_report(d)
+    text = page.read_text(encoding="utf-8")
+    assert "Unfinished sweep" in text
+    assert (d / "fuel_per_strategy.png").exists()
+    assert not (d / "saving_heatmap_all_routes.png").exists()
+
+
+def test_report_of_a_missing_directory_is_an_error(tmp_path, capsys):
+    assert rp.main([str(tmp_path / "nothing")]) == 1
+    assert "not a jaxems sweep directory" in capsys.readouterr().err
