@@ -1,0 +1,911 @@
+"""Level 2: the battery costate lambda_b (paper section 5, eqs. 46-55, Figures 11-15).
+
+Level 2 model (section 5, assumptions): the velocity profile is given (P_d, v per time step),
+the gear follows from a prescribed gearbox input speed omega, mode switches are instantaneous
+and free. Per step k the Hamiltonian (eq. 53)
+
+    H_2 = P_f - lambda_b P_bi
+
+is minimised over the four modes in the gear G_k by the Level 1 kernel of
+`jaxems.levels.powersplit` (no physics is repeated here), which gives the battery power P_b,k
+and  E_b(k+1) = E_b(k) - P_bi(P_b,k) dt  (eq. 52). Since dlambda_b/dt = 0 (eq. 54), lambda_b is
+constant between constraint activations and the problem is a boundary value problem in
+lambda_b alone.
+
+Gear rule: at every step the gear is the one whose shaft speed (`powertrain.shaft_speeds`) is
+nearest to omega_k (absolute difference in rad/s) among the gears in which some mode meets the
+demand (feasibility does not depend on lambda_b). Where no gear meets the demand, the nearest
+gear is kept, the step uses P_b = 0 and no fuel, and the status says `STEP_INFEASIBLE`.
+Padded steps (mask False) contribute nothing. Ties in H go to the lowest mode index (combined
+before engine-only before motor-only before open), as in `optimal_mode_gear`.
+
+Monotonicity: for every step, P_bi*(lambda_b) is non-decreasing in lambda_b (parametric
+minimisation of P_f + (-lambda_b) P_bi), so E_b(t_f) is non-increasing in lambda_b: a more
+negative lambda_b makes battery energy dearer and the EMS discharges less. Bisection on a
+bracket [lam_min, lam_max] (default [-6, -0.3], an argument) with a fixed number of iterations
+inside jit finds the solution; at lam = -6 the EMS charges as hard as the motor allows, at -0.3
+it discharges as hard as it can, so the bracket spans the reachable range of E_b(t_f).
+
+I1 (section 5.1, battery limits): the horizon is a list of pieces with fixed boundary values
+(start E_b0, end E_b_end, interior boundaries at E_min or E_max). All pieces are bisected
+together, each with its own constant lambda_b (one pass over the T steps per iteration: the
+per-step costate is gathered from the piece index, the end values are segment sums). While a
+piece's trajectory leaves [E_min, E_max], the piece with the largest violation is split at
+that step, the violated limit becoming the end value of the first and the start value of the
+second piece. Pieces live in static arrays of `max_pieces` = K entries (boundaries padded with
+T, empty pieces are no-ops), so the whole procedure is jit- and vmap-compatible; the number of
+rounds is bounded by K (a `lax.while_loop` that stops early when nothing is violated; under
+vmap a batch runs until its last member is done). When K pieces are in use and a violation
+remains, the status gets `PIECES_EXHAUSTED`, the last solution is returned as it is (E_b then
+leaves the limits where the status says so; nothing is clipped silently).
+
+A piece that charges beyond E_max even at lam_max (recuperation larger than the battery, e.g. a
+long descent) cannot end at its end value with any lambda_b: for such a piece (`SATURATED`) the
+battery is held at E_max and the surplus goes to the service brakes (E_b is reflected at E_max,
+E_b(k) = S(k) - max(0, max_{j<=k} S(j) - E_max) with S the free trajectory), and the bisection
+acts on the end value of the reflected trajectory. A piece whose end value lies above what
+lam_min reaches (demand the battery cannot support, e.g. a climb longer than the battery) is
+`INFEASIBLE`.
+
+I2 (section 5.2, guards B1/B2): at the end of the bisection the bracket [lo, hi] is ~1e-12
+wide. The trajectory at lo is B^+ (more charge, E_b(t_f) high), at hi B^- (E_b(t_f) low). When
+they differ by more than the tolerance, the target lies in a jump of E_b(t_f)(lambda_b): the
+status gets `AT_GUARD` and the piece is solved by mixing the two (eq. 55, I2a):
+r E^-(t_f) + (1 - r) E^+(t_f) = target. The mix is applied to every piece (off a guard it just
+removes the last bisection residual), so the reported E_b ends exactly on target. I2b
+(`minimal_switching`) chooses, instead of the infinite switching of I2a, a 0/1 selector per step
+between the two trajectories with the fewest switches that keeps E_b within the limits and
+ends on target.
+
+I3 (section 5.3, limited horizon): `level2_horizon` picks the lambda_b that maximises the
+smallest distance of E_b to its limits over a prediction window (bisection on the balance of
+the two distances, both monotone in lambda_b), with the special cases I3a (a limit is hit
+whatever lambda_b: solve the first sub-problem up to that event) and I3b (the window is on a
+guard and the non-unique solutions span both limits: lambda_b on the guard).
+
+Everything is written for ONE vehicle and ONE route; `costate_batch` and `costate_product`
+vmap it. All quantities SI: W, J, s, m/s, rad/s.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import powertrain as pt
+from ..params import VehicleParams
+from .powersplit import ENGINE_CONNECTED, MOTOR_CONNECTED, Split, _split_one, mode_gear_split
+
+# ----------------------------------------------------------------------------- status bit flags
+OK = 0
+INFEASIBLE = 1  # a piece's end value is out of reach (or its end misses the target)
+AT_GUARD = 2  # the target lies in a jump of E_b(t_f)(lambda_b): solved by mixing (I2)
+PIECES_EXHAUSTED = 4  # I1 used all K pieces and a limit is still violated
+SATURATED = 8  # recuperation beyond E_max: E_b held at E_max, surplus to the service brakes
+STEP_INFEASIBLE = 16  # some step has no mode in any gear that meets the demand
+I3A = 32  # limited horizon: a limit is hit whatever lambda_b; first sub-problem solved
+I3B = 64  # limited horizon: on a guard whose non-unique solutions span both limits
+
+STATUS_NAMES = {
+    INFEASIBLE: "infeasible",
+    AT_GUARD: "at-guard",
+    PIECES_EXHAUSTED: "pieces-exhausted",
+    SATURATED: "saturated",
+    STEP_INFEASIBLE: "step-infeasible",
+    I3A: "I3a",
+    I3B: "I3b",
+}
+
+LAM_BRACKET = (-6.0, -0.3)
+
+
+def status_names(code) -> list[str]:
+    """The names of the flags set in a status code ([] means converged)."""
+    code = int(code)
+    return [name for bit, name in STATUS_NAMES.items() if code & bit]
+
+
+# ------------------------------------------------------------------------------- the step model
+class Level2Steps(NamedTuple):
+    """Per-step solution of the Level 2 model at given costates; every field (T,).
+
+    P_b: battery terminal power (W); dE: E_b increment -P_bi dt (J); E_f: fuel energy P_f dt
+    (J); P_m: motor mechanical power (W); mode: mode index (0 Mc, 1 Me, 2 Mm, 3 Mo).
+    """
+
+    P_b: jax.Array
+    dE: jax.Array
+    E_f: jax.Array
+    P_m: jax.Array
+    mode: jax.Array
+
+
+def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
+    """The Level 1 split of the four modes in one gear: `Split` of shape (4,).
+
+    Equal to `mode_gear_split(vp, P_d, v, lam)[:, gear]` (tested), at a twelfth of the cost:
+    the same kernel evaluated for one gear only. Scalars in.
+    """
+    w = pt.shaft_speeds(vp, v)[gear]
+    ce = jnp.array(ENGINE_CONNECTED)
+    cm = jnp.array(MOTOR_CONNECTED)
+    launch = gear == 0
+    per_mode = jax.vmap(_split_one, in_axes=(None, None, None, None, 0, 0, None))
+    return per_mode(vp, P_d, w, lam, ce, cm, launch)
+
+
+def select_gears(vp: VehicleParams, P_d, v, w, mask):
+    """Gear per step from the prescribed gearbox input speed w (rad/s).
+
+    P_d, v, w: (T,), mask: (T,) bool -> (gear (T,) int, 0-based; ok (T,) bool). The gear is the
+    feasible one (some mode meets P_d) whose shaft speed is nearest to w; where none is
+    feasible the nearest gear and ok = False (and ok = False on padded steps).
+    """
+    sp = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v, -2.0)
+    feas = jnp.any(sp.feasible, axis=1)  # (T, G)
+    dist = jnp.abs(pt.shaft_speeds(vp, v) - w[:, None])
+    g_feas = jnp.argmin(jnp.where(feas, dist, jnp.inf), axis=-1)
+    g_any = jnp.argmin(dist, axis=-1)
+    any_feas = jnp.any(feas, axis=-1)
+    gear = jnp.where(any_feas, g_feas, g_any)
+    return gear, any_feas & mask
+
+
+def _step(vp, P_d, v, gear, ok, lam, dt):
+    sp = modes_at_gear(vp, P_d, v, gear, lam)
+    m = jnp.argmin(sp.H)
+    use = ok & jnp.isfinite(sp.H[m])
+    P_b = jnp.where(use, sp.P_b[m], 0.0)
+    dE = -pt.battery_internal(vp, P_b) * dt
+    E_f = jnp.where(use, sp.P_f[m], 0.0) * dt
+    P_m = jnp.where(use, sp.P_m[m], 0.0)
+    return Level2Steps(P_b=P_b, dE=dE, E_f=E_f, P_m=P_m, mode=m)
+
+
+def level2_steps(vp: VehicleParams, P_d, v, gear, ok, lam, dt) -> Level2Steps:
+    """Solve the Level 2 model step by step at costate lam: () or (T,). P_d, v, gear, ok: (T,)."""
+    lam = jnp.broadcast_to(lam, jnp.shape(P_d))
+    return jax.vmap(_step, in_axes=(None, 0, 0, 0, 0, 0, None))(vp, P_d, v, gear, ok, lam, dt)
+
+
+def _pass(vp, P_d, v, gear, ok, lam_steps, dt):
+    s = level2_steps(vp, P_d, v, gear, ok, lam_steps, dt)
+    return s.dE, s.E_f
+
+
+# --------------------------------------------------------------------------- piecewise helpers
+def _piece_ids(bnd, T):
+    """Piece index of each step: bnd (K+1,) sorted, padded with T -> (T,) in [0, K-1]."""
+    K = bnd.shape[0] - 1
+    pid = jnp.searchsorted(bnd, jnp.arange(T), side="right") - 1
+    return jnp.clip(pid, 0, K - 1)
+
+
+def _seg_cummax(x, start):
+    """Running max of x restarting where start is True."""
+
+    def op(a, b):
+        fa, xa = a
+        fb, xb = b
+        return fa | fb, jnp.where(fb, xb, jnp.maximum(xa, xb))
+
+    return jax.lax.associative_scan(op, (start, x))[1]
+
+
+def _seg_rev(x, last, fn):
+    """Reverse running fn (jnp.minimum / jnp.maximum) of x restarting where last is True."""
+
+    def op(a, b):
+        fa, xa = a
+        fb, xb = b
+        return fa | fb, jnp.where(fb, xb, fn(xa, xb))
+
+    return jax.lax.associative_scan(op, (last[::-1], x[::-1]))[1][::-1]
+
+
+def _seg_cumsum(x, pid, bnd):
+    """Cumulative sum of x (T,) restarting at every piece start (inclusive)."""
+    K = bnd.shape[0] - 1
+    T = x.shape[0]
+    C = jnp.concatenate([jnp.zeros((1,), x.dtype), jnp.cumsum(x)])
+    return C[1:] - C[jnp.clip(bnd[:K], 0, T)][pid]
+
+
+def _switching(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pin, tol_v):
+    """Segmented I2b: the fewest switches per piece; see `minimal_switching`.
+
+    Returns (sel (T,), n_switches (K,), feasible (K,)). Per piece, X(k) = E_b(k) - E_start -
+    sum dE_minus (piece-local) is non-decreasing with increments in [0, delta_k]; the funnel
+    [lo, hi] of X values from which the piece's end value can still be reached is computed by
+    segmented reverse scans, then a greedy forward pass keeps the current trajectory as long as
+    the funnel allows.
+    """
+    K = bnd.shape[0] - 1
+    T = dE_plus.shape[0]
+    k = jnp.arange(T)
+    delta = jnp.maximum(dE_plus - dE_minus, 0.0)
+    Ck = _seg_cumsum(delta, pid, bnd)  # C after step k (piece-local)
+    base = E_start[pid] + _seg_cumsum(dE_minus, pid, bnd)  # E_b after step k on B-
+    first = k == bnd[pid]
+    last = (k + 1) == bnd[pid + 1]
+    L = jnp.where(last, E_end[pid] - tol_pin, E_min - tol_v) - base
+    U = jnp.where(last, E_end[pid] + tol_pin, E_max + tol_v) - base
+    hi = _seg_rev(U, last, jnp.minimum)
+    lo = _seg_rev(L - Ck, last, jnp.maximum) + Ck
+    bad = (lo > hi) | (first & ((lo - delta > 0.0) | (hi < 0.0)))
+    feasible = ~(jax.ops.segment_max(bad.astype(jnp.int32), pid, num_segments=K) > 0)
+
+    def run(p0):
+        def step(c, i):
+            X, p = c
+            X = jnp.where(first[i], 0.0, X)
+            p = jnp.where(first[i], p0, p)
+            d = delta[i]
+            ds = jnp.where(d > 0, d, 1.0)
+            s_up = jnp.clip((hi[i] - X) / ds, 0.0, 1.0)  # on B+: stop at hi
+            s_dn = jnp.clip((lo[i] - X) / ds, 0.0, 1.0)  # on B-: leave when lo catches up
+            s = jnp.where(d > 0, jnp.where(p == 1, s_up, s_dn), p.astype(d.dtype))
+            p_new = jnp.where(
+                d > 0,
+                jnp.where(p == 1, (s_up >= 1.0).astype(p.dtype), (s_dn > 0.0).astype(p.dtype)),
+                p,
+            )
+            return (X + s * d, p_new), (s, p_new != p)
+
+        _, (sel, sw) = jax.lax.scan(step, (jnp.zeros((), delta.dtype), p0), k)
+        return sel, jax.ops.segment_sum(sw.astype(jnp.int32), pid, num_segments=K)
+
+    sel0, n0 = run(jnp.int32(0))
+    sel1, n1 = run(jnp.int32(1))
+    use1 = n1 < n0
+    return jnp.where(use1[pid], sel1, sel0), jnp.where(use1, n1, n0), feasible
+
+
+def _piece_paths(dE, pid, bnd, E_start, sat, E_max):
+    """E_b over the horizon, each piece restarted at its start value.
+
+    Returns (E, S, excess), each (T+1,): E the path (reflected at E_max in pieces with sat), S
+    the free path, excess the energy dumped so far in the piece. E[0] = E_start[0]; E[j]
+    (j >= 1) lies at the end of step j-1, in piece pid[j-1].
+    """
+    K = bnd.shape[0] - 1
+    T = dE.shape[0]
+    C = jnp.concatenate([jnp.zeros((1,), dE.dtype), jnp.cumsum(dE)])
+    C_start = C[jnp.clip(bnd[:K], 0, T)]
+    S = E_start[pid] + C[1:] - C_start[pid]  # (T,) free path at the end of each step
+    start = jnp.concatenate([jnp.ones((1,), bool), pid[1:] != pid[:-1]])
+    excess = jnp.where(sat[pid], jnp.maximum(_seg_cummax(S - E_max, start), 0.0), 0.0)
+    head = E_start[:1]
+    zero = jnp.zeros((1,), dE.dtype)
+    return (jnp.concatenate([head, S - excess]), jnp.concatenate([head, S]),
+            jnp.concatenate([zero, excess]))
+
+
+def _piece_ends(dE, pid, bnd, E_start, sat, E_max):
+    """End value of every piece (K,): free, or reflected at E_max where sat."""
+    K = bnd.shape[0] - 1
+    T = dE.shape[0]
+    C = jnp.concatenate([jnp.zeros((1,), dE.dtype), jnp.cumsum(dE)])
+    C_start = C[jnp.clip(bnd[:K], 0, T)]
+    S = E_start[pid] + C[1:] - C_start[pid]
+    end_free = E_start + jax.ops.segment_sum(dE, pid, num_segments=K)
+    peak = jax.ops.segment_max(S - E_max, pid, num_segments=K)  # -inf on empty pieces
+    end_refl = end_free - jnp.maximum(peak, 0.0)
+    return jnp.where(sat, end_refl, end_free)
+
+
+class _Pieces(NamedTuple):
+    lo: jax.Array  # (K,)
+    hi: jax.Array  # (K,)
+    r_plus: jax.Array  # (K,) I2a fraction on the B+ (lo) trajectory
+    sat: jax.Array  # (K,) bool
+    jump: jax.Array  # (K,) bool: end values at lo and hi differ by more than tol
+    dE_plus: jax.Array  # (T,)
+    dE_minus: jax.Array  # (T,)
+    Ef_plus: jax.Array  # (T,)
+    Ef_minus: jax.Array  # (T,)
+    E: jax.Array  # (T+1,) mixed piecewise path
+    pid: jax.Array  # (T,)
+    miss: jax.Array  # (K,) bool: a used piece whose path misses its end value by > tol
+    over: jax.Array  # (T+1,) upper violation measure (see _solve_pieces)
+    under: jax.Array  # (T+1,) lower violation measure
+    sel: jax.Array  # (T,) selector: I2b in free pieces with a sequence, else the I2a ratio
+    E_sel: jax.Array  # (T+1,) path along sel
+    n_switches: jax.Array  # (K,)
+
+
+def _solve_pieces(
+    vp, P_d, v, gear, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol, n_iter
+):
+    """Bisect every piece at once; mix the bracketing trajectories (I2a)."""
+    K = bnd.shape[0] - 1
+    T = P_d.shape[0]
+    pid = _piece_ids(bnd, T)
+    E_start, tgt = E_bnd[:K], E_bnd[1:]
+    lo = jnp.full((K,), lam_lo, dtype=E_bnd.dtype)
+    hi = jnp.full((K,), lam_hi, dtype=E_bnd.dtype)
+    run = partial(_pass, vp, P_d, v, gear, ok)
+    dE_lo, Ef_lo = run(lo[pid], dt)
+    dE_hi, Ef_hi = run(hi[pid], dt)
+    tol_v = 1e-3 * tol
+    # the free path crosses E_max even at the most discharging lambda: the overshoot cannot be
+    # avoided (recuperation beyond the battery), so the piece is reflected at E_max
+    _, S_hi, _ = _piece_paths(dE_hi, pid, bnd, E_start, jnp.zeros((K,), bool), E_max)
+    sat = jax.ops.segment_max(S_hi[1:] - E_max, pid, num_segments=K) > tol_v
+
+    def body(_, c):
+        lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = c
+        mid = 0.5 * (lo + hi)
+        dE_m, Ef_m = run(mid[pid], dt)
+        end = _piece_ends(dE_m, pid, bnd, E_start, sat, E_max)
+        # too much left: raise lam (saturated pieces: the largest lam that still ends on target)
+        up = jnp.where(sat, end >= tgt - tol_v, end > tgt)
+        upk = up[pid]
+        return (
+            jnp.where(up, mid, lo), jnp.where(up, hi, mid),
+            jnp.where(upk, dE_m, dE_lo), jnp.where(upk, Ef_m, Ef_lo),
+            jnp.where(upk, dE_hi, dE_m), jnp.where(upk, Ef_hi, Ef_m),
+        )
+
+    lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = jax.lax.fori_loop(
+        0, n_iter, body, (lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi)
+    )
+    end_p = _piece_ends(dE_lo, pid, bnd, E_start, sat, E_max)
+    end_m = _piece_ends(dE_hi, pid, bnd, E_start, sat, E_max)
+    den = end_p - end_m
+    r_plus = jnp.clip(jnp.where(den > 0, (tgt - end_m) / jnp.where(den > 0, den, 1.0), 0.5), 0, 1)
+
+    # eq. 55 is linear in r for free pieces; a reflected end is not, so bisect r there
+    def rbody(_, c):
+        ra, rb = c
+        rm = 0.5 * (ra + rb)
+        e = _piece_ends(rm[pid] * dE_lo + (1 - rm[pid]) * dE_hi, pid, bnd, E_start, sat, E_max)
+        low = e < tgt
+        return jnp.where(low, rm, ra), jnp.where(low, rb, rm)
+
+    ra, rb = jax.lax.fori_loop(0, 30, rbody, (jnp.zeros_like(lo), jnp.ones_like(lo)))
+    r_plus = jnp.where(sat & (den > 0), 0.5 * (ra + rb), r_plus)
+    sel = r_plus[pid]
+    dE_mix = sel * dE_lo + (1 - sel) * dE_hi
+    E, _, excess = _piece_paths(dE_mix, pid, bnd, E_start, sat, E_max)
+    miss = (jnp.abs(E[bnd[1:]] - tgt) > tol) & (bnd[1:] > bnd[:K])
+    # upper violations: E - E_max in free pieces; in saturated pieces the exit of an arc on
+    # E_max inside the piece (measured by the energy dumped so far), where I1 splits so that
+    # the arc ends a piece
+    T = P_d.shape[0]
+    j = jnp.arange(T + 1)
+    p_prev = pid[jnp.clip(j - 1, 0, T - 1)]
+    p_next = pid[jnp.clip(j, 0, T - 1)]
+    E_next = E[jnp.clip(j + 1, 0, T)]
+    on = E >= E_max - tol_v
+    exit_ = (j >= 1) & (j < T) & (p_prev == p_next) & on & (E_next < E_max - tol_v)
+    over = jnp.where(sat[p_prev] & (j >= 1), jnp.where(exit_, excess, -jnp.inf), E - E_max)
+    under = E_min - E
+    # I2b: in free pieces a switching sequence between B+ and B- that stays within the limits
+    # makes the piece solved, even where the constant I2a mix crosses a limit
+    sel_sw, n_sw, sw_ok = _switching(dE_lo, dE_hi, pid, bnd, E_start, tgt, E_min, E_max, tol_v,
+                                     tol_v)
+    fine = (~sat & sw_ok)[p_prev] & (j >= 1)
+    over = jnp.where(fine, -jnp.inf, over)
+    under = jnp.where(fine, -jnp.inf, under)
+    use_sw = (~sat & sw_ok)[pid]
+    sel = jnp.where(use_sw, sel_sw, r_plus[pid])
+    dE_sel = sel * dE_lo + (1 - sel) * dE_hi
+    E_sel, _, _ = _piece_paths(dE_sel, pid, bnd, E_start, sat, E_max)
+    return _Pieces(
+        lo=lo, hi=hi, r_plus=r_plus, sat=sat, jump=den > tol, dE_plus=dE_lo, dE_minus=dE_hi,
+        Ef_plus=Ef_lo, Ef_minus=Ef_hi, E=E, pid=pid, miss=miss, over=over, under=under,
+        sel=sel, E_sel=E_sel, n_switches=jnp.where(~sat & sw_ok, n_sw, 0),
+    )
+
+
+# ------------------------------------------------------------------------------ public result
+class CostateResult(NamedTuple):
+    """Level 2 solution for one vehicle and one route (K = max_pieces).
+
+    lam: (T,) piecewise-constant costate lambda_b; lam0: () its first value (what Level 1 uses
+    at t_0); E_b: (T+1,) battery energy (J), E_b[0] = E_b0, along `sel`: in pieces at a guard
+    the I2b switching sequence (within the limits), in saturated pieces the I2a mix;
+    E_b_i2a: (T+1,) the I2a path (constant mix per piece, eq. 55); n_switches: () switches of
+    the I2b sequences; status: () int
+    bit flags (OK = 0, see `status_names`); n_pieces: () number of pieces; boundaries: (K+1,)
+    step indices of the piece boundaries, padded with T; E_bnd: (K+1,) E_b at the boundaries;
+    lam_pieces, lam_lo, lam_hi, r_plus: (K,) per piece the costate, its final bisection bracket
+    and the I2a fraction spent on the B+ (lam_lo) trajectory; saturated: (K,) bool;
+    sel: (T,) selector (fraction of each step on B+; I2b, see E_b); dE_plus, dE_minus: (T,) E_b increments
+    (J) of the B+ / B- trajectories; E_f_plus, E_f_minus: (T,) their fuel per step (J); fuel: () fuel energy (J) along sel;
+    E_f: (T,) fuel energy per step (J); gear: (T,) gear index per step (0-based);
+    max_violation: () largest excursion (J) of E_b beyond [E_min, E_max].
+    """
+
+    lam: jax.Array
+    lam0: jax.Array
+    E_b: jax.Array
+    E_b_i2a: jax.Array
+    n_switches: jax.Array
+    status: jax.Array
+    n_pieces: jax.Array
+    boundaries: jax.Array
+    E_bnd: jax.Array
+    lam_pieces: jax.Array
+    lam_lo: jax.Array
+    lam_hi: jax.Array
+    r_plus: jax.Array
+    saturated: jax.Array
+    sel: jax.Array
+    dE_plus: jax.Array
+    dE_minus: jax.Array
+    E_f_plus: jax.Array
+    E_f_minus: jax.Array
+    fuel: jax.Array
+    E_f: jax.Array
+    gear: jax.Array
+    max_violation: jax.Array
+
+
+def _violations(over, under, bnd, E_min, E_max, skip):
+    """Largest violation of [E_min, E_max] at interior E indices; (value, index, limit)."""
+    T1 = over.shape[0]
+    j = jnp.arange(T1)
+    is_bnd = jnp.any(j[:, None] == bnd[None, :], axis=1)
+    viol = jnp.maximum(jnp.maximum(over, under), 0.0)
+    viol = jnp.where(is_bnd | skip, 0.0, viol)
+    i = jnp.argmax(viol)
+    return viol[i], i, jnp.where(over[i] > under[i], E_max, E_min)
+
+
+def _solve_core(
+    vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lam_lo, lam_hi, tol_rel, *, n_iter,
+    max_pieces,
+) -> CostateResult:
+    K = max_pieces
+    T = P_d.shape[0]
+    dtype = jnp.result_type(P_d, float)
+    gear, ok = select_gears(vp, P_d, v, w, mask)
+    tol = tol_rel * vp.E_b_max
+    tol_v = 1e-3 * tol  # a violation smaller than this is rounding
+    bnd = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.full((K,), T, jnp.int32)])
+    E_bnd = jnp.concatenate([jnp.full((1,), E_b0, dtype), jnp.full((K,), E_b_end, dtype)])
+    solve = partial(
+        _solve_pieces, vp, P_d, v, gear, ok, dt, E_min=E_min, E_max=E_max, lam_lo=lam_lo, lam_hi=lam_hi,
+        tol=tol, n_iter=n_iter,
+    )
+
+    def violation(sol, bnd, E_bnd):
+        # skip pieces that miss their end value: splitting cannot repair them
+        skip = jnp.concatenate([jnp.zeros((1,), bool), sol.miss[sol.pid]])
+        return _violations(sol.over, sol.under, bnd, E_min, E_max, skip)
+
+    def n_used(bnd):
+        return jnp.sum(bnd[1:] > bnd[:-1]).astype(jnp.int32)
+
+    def refine(bnd, E_bnd, sol):
+        """Split (or move) at the largest violation of the solved pieces."""
+        _, tc, lim = violation(sol, bnd, E_bnd)
+        tc = tc.astype(jnp.int32)
+        # the piece holding E index tc, and whether the violated stretch reaches back to its
+        # start on a boundary at the same limit: the constraint arc goes on, so that boundary
+        # moves forward to tc instead of a new piece being added (forward only: no cycles)
+        p = sol.pid[jnp.clip(tc - 1, 0, T - 1)]
+        a, b = bnd[p], bnd[p + 1]
+        j = jnp.arange(T + 1)
+        side = jnp.where(lim >= E_max, sol.E > E_max + tol_v, sol.E < E_min - tol_v)
+        back = jnp.all(jnp.where((j > a) & (j <= tc), side, True))
+        mv = ~sol.sat[p] & (p > 0) & (E_bnd[p] == lim) & back & (tc < b)
+        moved = bnd.at[p].set(tc)
+        b2 = jnp.concatenate([bnd, tc[None]])
+        e2 = jnp.concatenate([E_bnd, lim[None].astype(dtype)])
+        order = jnp.argsort(b2, stable=True)
+        ins_b, ins_e = b2[order][: K + 1], e2[order][: K + 1]
+        return jnp.where(mv, moved, ins_b), jnp.where(mv, E_bnd, ins_e)
+
+    # one traced solve: each round solves the current pieces, then refines them unless done
+    def cond(c):
+        return ~c[3]
+
+    def body(c):
+        bnd, E_bnd, _, _, i = c
+        sol = solve(bnd, E_bnd)
+        vmax, _, _ = violation(sol, bnd, E_bnd)
+        done = ~((vmax > tol_v) & (n_used(bnd) < K) & (i < 3 * K))
+        nb, ne = refine(bnd, E_bnd, sol)
+        bnd = jnp.where(done, bnd, nb)
+        E_bnd = jnp.where(done, E_bnd, ne)
+        return bnd, E_bnd, sol, done, i + 1
+
+    sol_shape = jax.eval_shape(lambda: solve(bnd, E_bnd))
+    sol0 = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), sol_shape)
+    # the last round leaves bnd unchanged, so sol is the solution of the final pieces
+    bnd, E_bnd, sol, _, _ = jax.lax.while_loop(
+        cond, body, (bnd, E_bnd, sol0, jnp.bool_(False), jnp.int32(0))
+    )
+
+    vmax, _, _ = violation(sol, bnd, E_bnd)
+    miss = sol.miss
+    used = bnd[1:] > bnd[:-1]
+    status = jnp.int32(OK)
+    status |= jnp.where(jnp.any(miss & used), INFEASIBLE, 0)
+    status |= jnp.where(jnp.any(sol.jump & used), AT_GUARD, 0)
+    status |= jnp.where(vmax > tol_v, PIECES_EXHAUSTED, 0)
+    status |= jnp.where(jnp.any(sol.sat & used), SATURATED, 0)
+    status |= jnp.where(jnp.any(mask & ~ok), STEP_INFEASIBLE, 0)
+    lam_p = 0.5 * (sol.lo + sol.hi)
+    lam = lam_p[sol.pid]
+    sel = sol.sel
+    E_f = sel * sol.Ef_plus + (1 - sel) * sol.Ef_minus
+    return CostateResult(
+        lam=lam, lam0=lam[0], E_b=sol.E_sel, E_b_i2a=sol.E, n_switches=jnp.sum(sol.n_switches),
+        status=status, n_pieces=n_used(bnd), boundaries=bnd,
+        E_bnd=E_bnd, lam_pieces=lam_p, lam_lo=sol.lo, lam_hi=sol.hi, r_plus=sol.r_plus,
+        saturated=sol.sat & used, sel=sel, dE_plus=sol.dE_plus, dE_minus=sol.dE_minus,
+        E_f_plus=sol.Ef_plus, E_f_minus=sol.Ef_minus, fuel=jnp.sum(E_f), E_f=E_f, gear=gear, max_violation=vmax,
+    )
+
+
+def _defaults(vp, E_b0, E_b_end, E_max):
+    """NaN means "default": E_b0 = soc0 E_b_max, E_b_end = E_b0, E_max = E_b_max."""
+    E_b0 = jnp.where(jnp.isnan(E_b0), vp.soc0 * vp.E_b_max, E_b0)
+    E_b_end = jnp.where(jnp.isnan(E_b_end), E_b0, E_b_end)
+    E_max = jnp.where(jnp.isnan(E_max), vp.E_b_max, E_max)
+    return E_b0, E_b_end, E_max
+
+
+def costate_kernel(
+    vp: VehicleParams, P_d, v, w, mask, dt, E_b0=jnp.nan, E_b_end=jnp.nan, E_min=0.0,
+    E_max=jnp.nan, lam_min=LAM_BRACKET[0], lam_max=LAM_BRACKET[1], tol_rel=1e-3, *,
+    n_iter: int = 40, max_pieces: int = 16,
+) -> CostateResult:
+    """The unvalidated, traceable Level 2 kernel (one vehicle, one route); see `solve_costate`.
+
+    P_d, v, w: (T,), mask: (T,) bool, every other argument a scalar (array leaves: new values
+    never recompile). NaN E_b0 / E_b_end / E_max mean soc0 E_b_max / E_b0 / E_b_max.
+    """
+    E_b0, E_b_end, E_max = _defaults(vp, E_b0, E_b_end, E_max)
+    return _solve_core(
+        vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lam_min, lam_max, tol_rel,
+        n_iter=n_iter, max_pieces=max_pieces,
+    )
+
+
+_costate_jit = jax.jit(costate_kernel, static_argnames=("n_iter", "max_pieces"))
+
+
+def _validate_route(P_d, v, w, mask, dt, batch: bool):
+    P_d, v, w = (np.asarray(x, dtype=float) for x in (P_d, v, w))
+    want = 2 if batch else 1
+    if P_d.ndim != want or P_d.shape[-1] < 1:
+        raise ValueError(f"P_d: expected shape {'(B, T)' if batch else '(T,)'}, got {P_d.shape}")
+    for name, x in (("v", v), ("w", w)):
+        if x.shape != P_d.shape:
+            raise ValueError(f"{name}: shape {x.shape} differs from P_d {P_d.shape}")
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: contains non-finite values")
+    if not np.all(np.isfinite(P_d)):
+        raise ValueError("P_d: contains non-finite values")
+    if np.any(v < 0) or np.any(w < 0):
+        raise ValueError("v, w: speeds must be >= 0")
+    mask = np.ones(P_d.shape, bool) if mask is None else np.asarray(mask, dtype=bool)
+    if mask.shape != P_d.shape:
+        raise ValueError(f"mask: shape {mask.shape} differs from P_d {P_d.shape}")
+    dt = np.asarray(dt, dtype=float)
+    if not (np.all(np.isfinite(dt)) and np.all(dt > 0)):
+        raise ValueError(f"dt: must be a positive number of seconds (got {dt})")
+    return P_d, v, w, mask, dt
+
+
+def _validate_levels(vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces):
+    lo, hi = (float(x) for x in lam_bracket)
+    if not lo < hi:
+        raise ValueError(f"lam_bracket: expected (low, high) with low < high, got {lam_bracket}")
+    if int(n_iter) < 1 or int(max_pieces) < 1:
+        raise ValueError("n_iter and max_pieces must be >= 1")
+    e_max = np.asarray(vp.E_b_max if E_max is None else E_max, dtype=float)
+    e0 = np.asarray(vp.soc0 * vp.E_b_max if E_b0 is None else E_b0, dtype=float)
+    if np.any(np.asarray(E_min) >= e_max):
+        raise ValueError(f"E_min ({E_min}) must be below E_max ({e_max})")
+    for name, e in (("E_b0", e0), ("E_b_end", None if E_b_end is None else E_b_end)):
+        if e is None:
+            continue
+        e = np.asarray(e, dtype=float)
+        if not np.all(np.isfinite(e)) or np.any(e < np.asarray(E_min)) or np.any(e > e_max):
+            raise ValueError(f"{name}: must lie within [E_min, E_max] = [{E_min}, {e_max}] J")
+    nan = np.nan
+    return (
+        nan if E_b0 is None else E_b0, nan if E_b_end is None else E_b_end,
+        nan if E_max is None else E_max, lo, hi,
+    )
+
+
+def solve_costate(
+    vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_end=None, E_min=0.0,
+    E_max=None, *, lam_bracket=LAM_BRACKET, tol_rel=1e-3, n_iter: int = 40,
+    max_pieces: int = 16,
+) -> CostateResult:
+    """Level 2 for one vehicle and one route: the piecewise-constant costate lambda_b.
+
+    P_d: (T,) mean driveline power (W); v: (T,) mean speed (m/s); w: (T,) gearbox input speed
+    omega (rad/s) the gear is chosen from; mask: (T,) bool, False on padded steps (default all
+    True); dt: step (s). E_b0: start energy (J, default soc0 E_b_max); E_b_end: end value (J,
+    default E_b0: charge sustaining); battery limits [E_min, E_max] (J, default [0, E_b_max]).
+    lam_bracket: the bisection bracket of lambda_b; tol_rel: tolerance on E_b(t_f) as a
+    fraction of E_b_max (also the jump size that flags a guard); n_iter: bisection iterations;
+    max_pieces: K, the most pieces I1 may use (1: plain bisection, limits only reported).
+
+    Inputs are validated here (ValueError naming the argument); the kernel is jitted once per
+    shape and static (n_iter, max_pieces). Returns `CostateResult` (status bit flags, no
+    exceptions from inside jit).
+    """
+    P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=False)
+    E_b0, E_b_end, E_max, lo, hi = _validate_levels(
+        vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces
+    )
+    return _costate_jit(
+        vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol_rel,
+        n_iter=int(n_iter), max_pieces=int(max_pieces),
+    )
+
+
+def bisect_costate(vp, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_end=None, **kw):
+    """Plain bisection on one constant lambda_b (no battery limits): E_b(t_f) = E_b_end.
+
+    Same arguments as `solve_costate`; the limits are set to +-inf and max_pieces to 1.
+    """
+    e0 = vp.soc0 * vp.E_b_max if E_b0 is None else E_b0
+    return solve_costate(
+        vp, P_d, v, w, mask, dt, e0, E_b_end, -np.inf, np.inf, max_pieces=1, **kw
+    )
+
+
+@partial(jax.jit, static_argnames=("n_iter", "max_pieces"))
+def _batch_jit(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol, *, n_iter,
+               max_pieces):
+    f = partial(costate_kernel, n_iter=n_iter, max_pieces=max_pieces)
+    return jax.vmap(f)(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol)
+
+
+@partial(jax.jit, static_argnames=("n_iter", "max_pieces"))
+def _product_jit(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol, *, n_iter,
+                 max_pieces):
+    f = partial(costate_kernel, n_iter=n_iter, max_pieces=max_pieces)
+    over_vehicles = jax.vmap(f, in_axes=(0,) + (None,) * 5 + (0,) * 7)
+    over_routes = jax.vmap(over_vehicles, in_axes=(None,) + (0,) * 5 + (None,) * 7)
+    return over_routes(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol)
+
+
+def _per_vehicle(vp, n):
+    """Broadcast every leaf of vp (batched or not) to a leading axis of n."""
+    if np.ndim(vp.mass) == 0:
+        return jax.tree.map(lambda x: np.broadcast_to(x, (n,) + np.shape(x)), vp)
+    if np.shape(vp.mass)[0] != n:
+        raise ValueError(f"vehicle batch of {np.shape(vp.mass)[0]} does not match {n}")
+    return jax.tree.map(lambda x: np.broadcast_to(x, (n,) + np.shape(x)[1:]), vp)
+
+
+def _opt(x, n):
+    return np.broadcast_to(np.asarray(np.nan if x is None else x, dtype=float), (n,))
+
+
+def costate_batch(
+    vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_end=None, E_min=0.0,
+    E_max=None, *, lam_bracket=LAM_BRACKET, tol_rel=1e-3, n_iter: int = 40,
+    max_pieces: int = 16,
+) -> CostateResult:
+    """`solve_costate` over a batch of B (vehicle, route) pairs: one jitted vmap.
+
+    P_d, v, w, mask: (B, T); vp: a vehicle (broadcast) or a stacked batch of B vehicles
+    (`stack_vehicles`; battery sizes are the leaf E_b_max); dt, E_b0, E_b_end, E_min, E_max:
+    scalars or (B,). Returns `CostateResult` with a leading axis B.
+    """
+    P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=True)
+    B = P_d.shape[0]
+    vpb = _per_vehicle(vp, B)
+    _validate_levels(
+        vpb, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces
+    )
+    lo, hi = (np.full((B,), float(x)) for x in lam_bracket)
+    return _batch_jit(
+        vpb, P_d, v, w, mask, np.broadcast_to(dt, (B,)), _opt(E_b0, B), _opt(E_b_end, B),
+        _opt(E_min, B), _opt(E_max, B), lo, hi, np.full((B,), float(tol_rel)),
+        n_iter=int(n_iter), max_pieces=int(max_pieces),
+    )
+
+
+def costate_product(
+    vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, *, E_min=0.0, lam_bracket=LAM_BRACKET,
+    tol_rel=1e-3, n_iter: int = 40, max_pieces: int = 16,
+) -> CostateResult:
+    """Every route with every vehicle: results with leading axes (R routes, V vehicles).
+
+    P_d, v, w, mask: (R, T); vp: a stacked batch of V vehicles (masses, battery sizes, ...);
+    dt: scalar or (R,). Each vehicle starts at soc0 E_b_max and is charge sustaining.
+    """
+    P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=True)
+    R = P_d.shape[0]
+    if np.ndim(vp.mass) == 0:
+        raise ValueError("costate_product: vp must be a stacked batch of vehicles")
+    V = np.shape(vp.mass)[0]
+    _validate_levels(vp, None, None, E_min, None, lam_bracket, n_iter, max_pieces)
+    lo, hi = (np.full((V,), float(x)) for x in lam_bracket)
+    nan = np.full((V,), np.nan)
+    return _product_jit(
+        vp, P_d, v, w, mask, np.broadcast_to(dt, (R,)), nan, nan,
+        np.broadcast_to(float(E_min), (V,)), nan, lo, hi, np.full((V,), float(tol_rel)),
+        n_iter=int(n_iter), max_pieces=int(max_pieces),
+    )
+
+
+# ------------------------------------------------------------------------- I2b minimal switching
+class Switching(NamedTuple):
+    """A switching sequence between the B+ and B- trajectories (I2b).
+
+    sel: (T,) fraction of each step on B+ (0 or 1 except at the switching steps, where the
+    switch falls inside the step); E_b: (T+1,) battery energy (J); n_switches: () int;
+    feasible: () bool (a sequence within the limits and through the pinned values exists).
+    """
+
+    sel: jax.Array
+    E_b: jax.Array
+    n_switches: jax.Array
+    feasible: jax.Array
+
+
+@jax.jit
+def minimal_switching(dE_plus, dE_minus, E_b0, E_b_end, E_min, E_max, tol=1.0) -> Switching:
+    """I2b (section 5.2.2, Figures 14-15): the fewest switches between two trajectories.
+
+    dE_plus, dE_minus: (T,) E_b increments (J) of B+ and B- (dE_plus >= dE_minus step by step,
+    which holds for the trajectories at the two sides of a guard); E_b0: start (J); E_b_end:
+    end value (J); [E_min, E_max]: limits (J); tol: slack (J) on the limits and the end.
+
+    With X(k) = E_b(k) - E_b0 - sum_{j<k} dE_minus_j, any selector s_k in [0, 1] gives a
+    non-decreasing X with increments s_k (dE_plus_k - dE_minus_k). The limits and the end
+    value bound X to a tube; the X values from which the end can still be reached form the
+    funnel [lo_k, hi_k] (hi_k = min_{j>=k} U_j, lo_k = max_{j>=k} (L_j - C_j) + C_k, C the
+    cumulative difference). Greedy forward pass: keep the current trajectory as long as the
+    funnel allows and switch at the last moment, inside the step, so that the limit is just
+    touched (the paper's advanced switching time, Figure 15). From the funnel's edge the other
+    trajectory then runs longest, so the number of switches is minimal. Both starting
+    trajectories are tried (ties: B-). The last switch is the paper's back-propagated one that
+    puts E_b(t_f) on its end value.
+    """
+    T = dE_plus.shape[0]
+    pid = jnp.zeros((T,), jnp.int32)
+    bnd = jnp.array([0, T], jnp.int32)
+    e0 = jnp.reshape(jnp.asarray(E_b0, dE_plus.dtype), (1,))
+    e1 = jnp.reshape(jnp.asarray(E_b_end, dE_plus.dtype), (1,))
+    sel, n, ok = _switching(dE_plus, dE_minus, pid, bnd, e0, e1, E_min, E_max, tol, tol)
+    E = jnp.concatenate([e0, E_b0 + jnp.cumsum(sel * dE_plus + (1 - sel) * dE_minus)])
+    return Switching(sel=sel, E_b=E, n_switches=n[0], feasible=ok[0])
+
+
+# ------------------------------------------------------------------------ I3 limited horizon
+class HorizonResult(NamedTuple):
+    """Level 2 on a window that ends before the route does (I3).
+
+    lam: () the costate for Level 1; E_b: (T+1,) predicted battery energy (J) over the window
+    (I2a mix at a guard; under I3a the first sub-problem's trajectory, held after its end);
+    margin: () smallest distance (J) of E_b to [E_min, E_max] (negative: a limit is crossed);
+    status: () bit flags (AT_GUARD, I3A, I3B, INFEASIBLE, ...); r_plus: () I2a fraction on B+;
+    lam_lo, lam_hi: () final bracket; t_event: () E index of the I3a event (T when none).
+    """
+
+    lam: jax.Array
+    E_b: jax.Array
+    margin: jax.Array
+    status: jax.Array
+    r_plus: jax.Array
+    lam_lo: jax.Array
+    lam_hi: jax.Array
+    t_event: jax.Array
+
+
+def horizon_kernel(
+    vp: VehicleParams, P_d, v, w, mask, dt, E_b0, E_min=0.0, E_max=jnp.nan,
+    lam_min=LAM_BRACKET[0], lam_max=LAM_BRACKET[1], tol_rel=1e-3, *, n_iter: int = 40,
+    max_pieces: int = 4,
+) -> HorizonResult:
+    """Traceable I3 kernel (one vehicle, one window); see `level2_horizon`."""
+    E_max = jnp.where(jnp.isnan(E_max), vp.E_b_max, E_max)
+    T = P_d.shape[0]
+    dtype = jnp.result_type(P_d, float)
+    gear, ok = select_gears(vp, P_d, v, w, mask)
+    tol = tol_rel * vp.E_b_max
+
+    def path(dE):
+        return jnp.concatenate([jnp.reshape(E_b0, (1,)).astype(dtype), E_b0 + jnp.cumsum(dE)])
+
+    def dists(E):
+        return jnp.min(E - E_min), jnp.min(E_max - E)
+
+    def run(lam):
+        return level2_steps(vp, P_d, v, gear, ok, lam, dt).dE
+
+    # g(lam) = d_low - d_up is non-increasing in lam: bisection on its sign maximises the
+    # smaller distance min(d_low, d_up) (d_low falls and d_up rises with lam)
+    def body(_, c):
+        lo, hi, d_lo, d_hi = c
+        mid = 0.5 * (lo + hi)
+        dm = run(mid)
+        a, b = dists(path(dm))
+        up = a > b
+        return (jnp.where(up, mid, lo), jnp.where(up, hi, mid), jnp.where(up, dm, d_lo),
+                jnp.where(up, d_hi, dm))
+
+    lo = jnp.asarray(lam_min, dtype)
+    hi = jnp.asarray(lam_max, dtype)
+    lo, hi, d_plus, d_minus = jax.lax.fori_loop(0, n_iter, body, (lo, hi, run(lo), run(hi)))
+    E_plus, E_minus = path(d_plus), path(d_minus)
+
+    # at a guard the two sides differ: mix them (I2a) to balance the two distances
+    def rbody(_, c):
+        a_, b_ = c
+        r = 0.5 * (a_ + b_)
+        x, y = dists(E_minus + r * (E_plus - E_minus))
+        return jnp.where(x < y, r, a_), jnp.where(x < y, b_, r)
+
+    ra, rb = jax.lax.fori_loop(0, 50, rbody, (jnp.zeros((), dtype), jnp.ones((), dtype)))
+    r = 0.5 * (ra + rb)
+    E_mix = E_minus + r * (E_plus - E_minus)
+    a, b = dists(E_mix)
+    margin = jnp.minimum(a, b)
+    lam = 0.5 * (lo + hi)
+    jump = jnp.max(E_plus - E_minus) > tol
+    status = jnp.where(jump, AT_GUARD, OK)
+    status |= jnp.where(jump & (E_plus[T] >= E_max - tol) & (E_minus[T] <= E_min + tol), I3B, 0)
+    status |= jnp.where(jnp.any(mask & ~ok), STEP_INFEASIBLE, 0)
+
+    # I3a: no lambda keeps E_b within the limits: the largest violation is an event the first
+    # sub-problem must end on (its limit as end value)
+    tol_v = 1e-3 * tol
+    viol = jnp.maximum(jnp.maximum(E_mix - E_max, E_min - E_mix), 0.0)
+    tc = jnp.argmax(viol).astype(jnp.int32)
+    lim = jnp.where(E_mix[tc] > E_max, E_max, E_min)
+    event = (margin < -tol_v) & (tc > 0)
+
+    def first_subproblem(_):
+        m = mask & (jnp.arange(T) < tc)
+        res = _solve_core(vp, P_d, v, w, m, dt, E_b0, lim, E_min, E_max, lam_min, lam_max,
+                          tol_rel, n_iter=n_iter, max_pieces=max_pieces)
+        return res.lam0, res.E_b, (res.status | I3A).astype(jnp.int32), res.r_plus[0], res.lam_lo[0], res.lam_hi[0]
+
+    def keep(_):
+        return lam, E_mix, jnp.asarray(status, jnp.int32), r, lo, hi
+
+    lam, E_out, status, r, lo, hi = jax.lax.cond(event, first_subproblem, keep, None)
+    return HorizonResult(
+        lam=lam, E_b=E_out, margin=margin, status=jnp.asarray(status, jnp.int32), r_plus=r,
+        lam_lo=lo, lam_hi=hi, t_event=jnp.where(event, tc, T).astype(jnp.int32),
+    )
+
+
+_horizon_jit = jax.jit(horizon_kernel, static_argnames=("n_iter", "max_pieces"))
+
+
+def level2_horizon(
+    vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_min=0.0, E_max=None, *,
+    lam_bracket=LAM_BRACKET, tol_rel=1e-3, n_iter: int = 40, max_pieces: int = 4,
+) -> HorizonResult:
+    """I3 (section 5.3): lambda_b for a prediction window that ends before the route.
+
+    P_d, v, w, mask: (T,) the window of the prediction (pad with mask = False to keep one
+    shape in an MPC loop); E_b0: the current battery energy (J, default soc0 E_b_max).
+    Without an end condition, lambda_b maximises the smallest distance of E_b to
+    [E_min, E_max] over the window. I3a: if no lambda_b keeps E_b within the limits, the
+    largest violation is an event (e.g. a long descent that fills the battery whatever
+    lambda_b): the first sub-problem, from now to that event with the limit as end value, is
+    solved (with I1 inside, up to max_pieces) and its first costate returned. I3b: on a guard
+    whose two solutions span both limits at the window end, lambda_b is the guard value.
+    """
+    P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=False)
+    E_b0v, _, E_maxv, lo, hi = _validate_levels(
+        vp, E_b0, None, E_min, E_max, lam_bracket, n_iter, max_pieces
+    )
+    e0 = vp.soc0 * vp.E_b_max if E_b0 is None else E_b0
+    return _horizon_jit(
+        vp, P_d, v, w, mask, dt, e0, E_min, E_maxv, lo, hi, tol_rel, n_iter=int(n_iter),
+        max_pieces=int(max_pieces),
+    )

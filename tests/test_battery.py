@@ -1,0 +1,426 @@
+"""Level 2 (jaxems.levels.battery): bisection, I1 battery limits, I2 guards, I3 horizon.
+
+References: a plain NumPy step loop over `mode_gear_split` (the full mode x gear table, one
+step at a time) for E_b(t_f)(lambda_b); a NumPy dynamic program over a fine E_b grid on the same
+Level 2 model (its own fuel model per mode, written from the paper's equations) for the fuel;
+hand-built cases with known minimal switching counts and a brute-force enumeration for I2b.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import jax
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from jaxems import powertrain as pt
+from jaxems.levels import battery as b
+from jaxems.levels.powersplit import mode_gear_split
+from jaxems.params import RPM, load_vehicle, stack_vehicles
+
+VP = load_vehicle()
+W1100 = 1100 * RPM
+_mgs = jax.jit(mode_gear_split)
+_steps = jax.jit(b.level2_steps)
+
+
+def make_route(vp, segs, T=None):
+    """segs: [(steps, speed m/s, grade)] -> P_d, v (constant-speed road load)."""
+    v = np.concatenate([np.full(n, s, float) for n, s, _ in segs])
+    g = np.concatenate([np.full(n, gr, float) for n, _, gr in segs])
+    if T is not None:
+        v, g = v[:T], g[:T]
+    return np.asarray(pt.road_load(vp, v, g)) * v, v
+
+
+# ------------------------------------------------------------------- references (plain NumPy)
+def ref_gears(vp, P_d, v, w):
+    gears = []
+    for k in range(len(P_d)):
+        sp = _mgs(vp, P_d[k], v[k], -2.0)
+        feas = np.asarray(sp.feasible).any(axis=0)
+        ws = np.asarray(vp.gear_ratio) * float(vp.r_d) * v[k]
+        d = np.abs(ws - w[k])
+        gears.append(int(np.argmin(np.where(feas, d, np.inf))) if feas.any()
+                     else int(np.argmin(d)))
+    return np.array(gears)
+
+
+def ref_end(vp, P_d, v, w, lam, dt, E0):
+    """E_b(t_f) at a constant lambda_b by a step loop over the full (mode, gear) table."""
+    gears = ref_gears(vp, P_d, v, w)
+    E = E0
+    for k in range(len(P_d)):
+        sp = _mgs(vp, P_d[k], v[k], lam)
+        H = np.asarray(sp.H)[:, gears[k]]
+        m = int(np.argmin(H))
+        if np.isfinite(H[m]):
+            P_b = float(np.asarray(sp.P_b)[m, gears[k]])
+            E -= (P_b + float(vp.beta) * P_b**2) * dt
+    return E
+
+
+def ref_fuel_power(vp, P_d, w, gear, P_b):
+    """Fuel power (W) of the best mode for battery power P_b (array) at gear speed w: NumPy.
+
+    Written from eqs. 1-7 and the mode definitions (engine and/or motor on the shaft, service
+    brakes absorb a surplus, slipping clutch below idle in gear 1); +inf where infeasible.
+    """
+    f = lambda x: float(np.asarray(x))  # noqa: E731
+    eta_e, eta_m = f(vp.eta_e), f(vp.eta_m)
+    slip = gear == 0 and w < f(vp.we_min)
+    we = f(vp.we_min) if slip else w
+    kf = f(vp.we_min) / w if slip else 1.0
+    pe_min, pe_max = (f(x) for x in pt.engine_power_limits(vp, we))
+    e_ok = f(vp.we_min) * (1 - 1e-9) <= we <= f(vp.we_max) and w > 0
+    e_lo, e_hi = pe_min / kf, pe_max / kf
+    pe0 = f(pt.engine_friction(vp, we))
+    m_lim = f(pt.motor_power_limit(vp, w))
+    pm0 = f(pt.motor_friction(vp, w))
+    m_ok = w <= f(vp.wm_max)
+    P_b = np.asarray(P_b, float)
+    P_m = pm0 + np.where(P_b > 0, eta_m * P_b, P_b / eta_m)
+    out = np.full(P_b.shape, np.inf)
+
+    def engine_fuel(P_out):
+        return np.maximum(kf * P_out - pe0, 0.0) / eta_e
+
+    tiny = 1e-6
+    if e_ok and m_ok:  # combined
+        ok = (np.abs(P_m) <= m_lim + tiny) & (P_d - P_m <= e_hi + tiny)
+        out = np.where(ok, np.minimum(out, engine_fuel(np.clip(P_d - P_m, e_lo, e_hi))), out)
+    zero = np.abs(P_b) < 1e-9
+    if e_ok and P_d <= e_hi:  # engine-only: P_b = 0
+        out = np.where(zero, np.minimum(out, engine_fuel(np.clip(P_d, e_lo, e_hi))), out)
+    if m_ok:  # motor-only: P_m in [max(-m_lim, P_d), m_lim], no fuel
+        ok = (P_m >= max(-m_lim, P_d) - tiny) & (P_m <= m_lim + tiny)
+        out = np.where(ok, np.minimum(out, 0.0), out)
+    if P_d <= 0:  # open driveline
+        out = np.where(zero, 0.0, out)
+    return out
+
+
+def ref_dp(vp, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=301, end_weight=6.0):
+    """Minimal fuel (J) by DP over an E_b grid of n_grid points with E_b(t_f) = E0.
+
+    Backward recursion with the cost-to-go interpolated linearly between grid points. Controls
+    per step: n_ctrl battery powers over the motor's range plus the exact points of the
+    engine-only / open (P_b = 0) and motor-only (P_m = P_d) modes; the fuel of the best mode
+    for each. The end condition is a penalty end_weight |E_b - E0| with end_weight above every
+    costate in the bracket, so missing it never pays.
+    """
+    gears = ref_gears(vp, P_d, v, w)
+    grid = np.linspace(E_min, E_max, n_grid)
+    beta, eta_m = float(vp.beta), float(vp.eta_m)
+    big = 1e15
+    V = end_weight * np.abs(grid - E0)
+    for k in range(len(P_d) - 1, -1, -1):
+        wk = float(np.asarray(pt.shaft_speeds(vp, v[k]))[gears[k]])
+        m_lim = float(pt.motor_power_limit(vp, wk))
+        pm0 = float(pt.motor_friction(vp, wk))
+        lim_b = (m_lim - pm0) / eta_m + 1.0
+        d = P_d[k] - pm0
+        exact = d / eta_m if d > 0 else d * eta_m  # motor-only with P_m = P_d
+        U = np.concatenate([np.linspace(-lim_b, lim_b, n_ctrl), [0.0, exact]])
+        c = ref_fuel_power(vp, P_d[k], wk, gears[k], U) * dt
+        if not np.isfinite(c).any():  # nothing feasible: the Level 2 model skips the step
+            c = np.where(U == 0.0, 0.0, np.inf)
+        keep = np.isfinite(c)
+        U, c = U[keep], c[keep]
+        E_next = grid[:, None] - (U + beta * U * U)[None, :] * dt
+        inside = (E_next >= E_min - 1e-9) & (E_next <= E_max + 1e-9)
+        Vn = np.interp(E_next, grid, V)
+        V = np.min(np.where(inside, c[None, :] + Vn, big), axis=1)
+    return float(np.interp(E0, grid, V))
+
+
+# -------------------------------------------------------------------------------- kernels
+def test_modes_at_gear_equals_full_table():
+    rng = np.random.default_rng(0)
+    f = jax.jit(b.modes_at_gear)
+    for _ in range(12):
+        P_d, v = rng.uniform(-150e3, 300e3), rng.uniform(0.5, 25)
+        lam, g = rng.uniform(-4, -0.5), int(rng.integers(0, 12))
+        full, one = _mgs(VP, P_d, v, lam), f(VP, P_d, v, g, lam)
+        np.testing.assert_array_equal(np.asarray(full.H)[:, g], np.asarray(one.H))
+        np.testing.assert_array_equal(np.asarray(full.P_b)[:, g], np.asarray(one.P_b))
+
+
+def test_gear_rule_matches_reference():
+    P_d, v = make_route(VP, [(40, 3.0, 0.0), (40, 12.0, 0.03), (40, 22.0, -0.02)])
+    w = np.linspace(700, 1700, T_H) * RPM
+    gear, ok = jax.jit(b.select_gears)(VP, P_d, v, w, np.ones(T_H, bool))
+    np.testing.assert_array_equal(np.asarray(gear), ref_gears(VP, P_d, v, w))
+    assert bool(np.all(ok))
+
+
+# ------------------------------------------------------------------------------ bisection
+T_H = 120  # one horizon length for every test: one compilation per kernel
+DT_H = 2.0
+
+
+@st.composite
+def routes(draw):
+    n_seg = draw(st.integers(1, 4))
+    cuts = sorted(draw(st.lists(st.integers(1, T_H - 1), min_size=n_seg - 1,
+                                max_size=n_seg - 1, unique=True)))
+    bounds = [0, *cuts, T_H]
+    segs = [(bounds[i + 1] - bounds[i], draw(st.floats(6.0, 24.0)),
+             draw(st.floats(-0.04, 0.06))) for i in range(n_seg)]
+    E0 = draw(st.floats(0.1, 0.9)) * float(VP.E_b_max)
+    return segs, E0
+
+
+@settings(max_examples=15)
+@given(routes())
+def test_bisection_charge_sustaining_or_infeasible(case):
+    segs, E0 = case
+    P_d, v = make_route(VP, segs)
+    w = np.full(T_H, W1100)
+    r = b.bisect_costate(VP, P_d, v, w, None, DT_H, E0)
+    tol = 1e-3 * float(VP.E_b_max)
+    status = int(r.status)
+    assert not status & b.STEP_INFEASIBLE
+    lo, hi = float(r.lam_lo[0]), float(r.lam_hi[0])
+    if status & b.INFEASIBLE:
+        # no costate in the bracket reaches the target (reference loop at the bracket ends)
+        e_lo = ref_end(VP, P_d, v, w, b.LAM_BRACKET[0], DT_H, E0)
+        e_hi = ref_end(VP, P_d, v, w, b.LAM_BRACKET[1], DT_H, E0)
+        assert E0 > e_lo + tol or E0 < e_hi - tol
+    else:
+        assert abs(float(r.E_b[-1]) - E0) <= tol
+        assert abs(float(r.E_b_i2a[-1]) - E0) <= tol
+        # the final bracket holds the target in the reference model
+        assert ref_end(VP, P_d, v, w, lo, DT_H, E0) >= E0 - tol
+        assert ref_end(VP, P_d, v, w, hi, DT_H, E0) <= E0 + tol
+        assert hi - lo < 1e-9
+
+
+def test_monotone_in_costate():
+    P_d, v = make_route(VP, [(40, 15, 0.0), (40, 20, 0.04), (40, 18, -0.03)])
+    gear, ok = b.select_gears(VP, P_d, v, np.full(T_H, W1100), np.ones(T_H, bool))
+    ends = [float(_steps(VP, P_d, v, gear, ok, lam, DT_H).dE.sum())
+            for lam in np.linspace(-4, -1, 41)]
+    assert np.all(np.diff(ends) <= 1e-6)
+
+
+def test_climb_beyond_the_battery_is_infeasible():
+    # 300 kW up a long climb at 12 m/s: beyond the engine, the motor has to help all the way
+    T = T_H
+    v = np.full(T, 12.0)
+    P_d = np.full(T, 420e3)
+    w = np.full(T, W1100)
+    r = b.bisect_costate(VP, P_d, v, w, None, DT_H)
+    assert int(r.status) & b.INFEASIBLE
+    assert float(r.E_b[-1]) < float(VP.E_b0) - 1e-3 * float(VP.E_b_max)
+    # with the limits on, E_b would have to leave [0, E_b_max]: also infeasible
+    r2 = b.solve_costate(VP, P_d, v, w, None, DT_H)
+    assert int(r2.status) & b.INFEASIBLE
+
+
+# --------------------------------------------------------------------------- I1 and the DP
+VP_SMALL = VP.replace(E_b_max=1.0e6)
+LIM_SEGS = [(20, 15, 0.0), (27, 15, 0.035), (20, 18, 0.0), (27, 18, -0.03), (26, 15, 0.0)]
+
+
+def test_limits_piecewise_matches_dp():
+    dt = 3.0
+    P_d, v = make_route(VP_SMALL, LIM_SEGS)
+    w = np.full(len(v), W1100)
+    free = b.bisect_costate(VP_SMALL, P_d, v, w, None, dt)
+    assert float(free.E_b.min()) < -0.1e6 or float(free.E_b.max()) > 1.1e6  # limits matter
+    r = b.solve_costate(VP_SMALL, P_d, v, w, None, dt)
+    status = int(r.status)
+    assert not status & (b.INFEASIBLE | b.PIECES_EXHAUSTED), b.status_names(status)
+    assert int(r.n_pieces) > 1
+    E = np.asarray(r.E_b)
+    tol = 1e-3 * 1e6
+    assert E.min() >= -10.0 and E.max() <= 1e6 + 10.0  # limits within 1e-5 E_b_max
+    assert abs(E[-1] - E[0]) <= tol
+    # the costate only changes at piece boundaries
+    lam = np.asarray(r.lam)
+    assert np.count_nonzero(np.diff(lam)) <= int(r.n_pieces) - 1
+    dp = ref_dp(VP_SMALL, P_d, v, w, dt, 0.5e6, 0.0, 1e6, n_grid=241)
+    fuel = float(r.fuel)
+    assert abs(fuel - dp) / dp < 5e-3, (fuel, dp)
+
+
+# ------------------------------------------------------------------------------------- I2
+def test_minimal_switching_known_cases():
+    T = 100
+    up, dn = np.ones(T), -np.ones(T)
+    # one switch: up to the top then down (or down then up)
+    s = b.minimal_switching(up, dn, 50.0, 50.0, 0.0, 100.0, 1e-9)
+    assert bool(s.feasible) and int(s.n_switches) == 1
+    assert abs(float(s.E_b[-1]) - 50.0) < 1e-6
+    # E_max at 80: going down first is the one-switch answer
+    s = b.minimal_switching(up, dn, 50.0, 50.0, 0.0, 80.0, 1e-9)
+    assert int(s.n_switches) == 1 and float(s.E_b.min()) >= -1e-6
+    assert float(s.E_b.max()) <= 80 + 1e-6
+    # limits [20, 80]: no single switch works (it would reach 0 or 100): two switches
+    s = b.minimal_switching(up, dn, 50.0, 50.0, 20.0, 80.0, 1e-9)
+    assert bool(s.feasible) and int(s.n_switches) == 2
+    E = np.asarray(s.E_b)
+    assert E.min() >= 20 - 1e-6 and E.max() <= 80 + 1e-6 and abs(E[-1] - 50) < 1e-6
+    # a switch advanced so that the limit is just touched (Figure 15): E_b reaches E_min
+    assert abs(E.min() - 20) < 1e-6
+    # impossible: net change must be +60 but B+ gives at most +100... within [0, 40] no
+    s = b.minimal_switching(up, dn, 20.0, 20.0, 0.0, 1.0, 1e-9)
+    assert not bool(s.feasible)
+
+
+@settings(max_examples=25)
+@given(st.lists(st.integers(-2, 2), min_size=12, max_size=12),
+       st.lists(st.integers(0, 3), min_size=12, max_size=12),
+       st.integers(2, 8), st.integers(-3, 3))
+def test_minimal_switching_vs_brute_force(base, gap, e0, de):
+    lo_lim, hi_lim = 0.0, 10.0
+    dm = np.array(base, float)
+    dp = dm + np.array(gap, float)
+    end = float(e0 + de)
+    best = None
+    for bits in itertools.product((0, 1), repeat=12):
+        s = np.array(bits)
+        E = e0 + np.concatenate([[0.0], np.cumsum(np.where(s, dp, dm))])
+        if E.min() < lo_lim or E.max() > hi_lim or abs(E[-1] - end) > 1e-9:
+            continue
+        n = int(np.count_nonzero(np.diff(s)))
+        best = n if best is None else min(best, n)
+    r = b.minimal_switching(dp, dm, float(e0), end, lo_lim, hi_lim, 1e-9)
+    if best is not None:
+        assert bool(r.feasible)
+    if bool(r.feasible):
+        E = np.asarray(r.E_b)
+        assert E.min() >= lo_lim - 1e-6 and E.max() <= hi_lim + 1e-6
+        assert abs(E[-1] - end) < 1e-6
+        if best is not None:
+            assert int(r.n_switches) <= best
+
+
+def guard_route():
+    T = T_H
+    P_d, v = make_route(VP, [(40, 16.7, 0.0), (40, 16.7, 0.01), (40, 16.7, 0.004)])
+    return P_d, v, np.full(T, W1100)
+
+
+def test_guard_mixing_is_charge_sustaining():
+    P_d, v, w = guard_route()
+    dt = 4.0
+    r = b.bisect_costate(VP, P_d, v, w, None, dt)  # one piece, no limits
+    assert int(r.status) & b.AT_GUARD, b.status_names(r.status)
+    assert not int(r.status) & b.INFEASIBLE
+    tol = 1e-3 * float(VP.E_b_max)
+    E0 = float(VP.E_b0)
+    # neither side of the guard is charge sustaining: E_b(t_f) jumps over the target, also in
+    # the reference loop
+    assert ref_end(VP, P_d, v, w, float(r.lam_lo[0]), dt, E0) > E0 + 10 * tol
+    assert ref_end(VP, P_d, v, w, float(r.lam_hi[0]), dt, E0) < E0 - 10 * tol
+    # I2a (eq. 55): the ratio puts E_b(t_f) on target
+    r_mix = float(r.r_plus[0])
+    e_plus = E0 + float(np.sum(r.dE_plus))
+    e_minus = E0 + float(np.sum(r.dE_minus))
+    assert 0 < r_mix < 1
+    assert abs(r_mix * e_plus + (1 - r_mix) * e_minus - E0) <= 1e-6 * tol
+    assert abs(float(r.E_b_i2a[-1]) - E0) <= tol
+    # I2b without limits: exactly one (back-propagated) switch
+    assert abs(float(r.E_b[-1]) - E0) <= tol
+    assert int(r.n_switches) == 1
+    # at the guard both sides have equal H: I2a and I2b burn the same fuel
+    fuel_i2a = r_mix * np.sum(r.E_f_plus) + (1 - r_mix) * np.sum(r.E_f_minus)
+    assert abs(float(fuel_i2a) - float(r.fuel)) <= abs(float(r.lam0)) * tol
+    # with limits (Figures 14-15), on a constant demand at the guard: B+ charges and B-
+    # discharges at every step, so a band of +-5 % around E0 needs several switches
+    P_c, v_c = make_route(VP, [(T_H, 16.7, 0.005)])
+    rc = b.bisect_costate(VP, P_c, v_c, w, None, dt)
+    assert int(rc.status) & b.AT_GUARD
+    assert np.all(np.asarray(rc.dE_plus) > 0) and np.all(np.asarray(rc.dE_minus) < 0)
+    E_max = float(VP.E_b_max)
+    s = b.minimal_switching(rc.dE_plus, rc.dE_minus, E0, E0, 0.45 * E_max, 0.55 * E_max, 1.0)
+    E = np.asarray(s.E_b)
+    assert bool(s.feasible) and int(s.n_switches) >= 2
+    assert E.min() >= 0.45 * E_max - 2.0 and E.max() <= 0.55 * E_max + 2.0  # slack 1 J
+    assert abs(E[-1] - E0) <= 2.0
+
+
+# ----------------------------------------------------------------------------- batching
+def test_batch_equals_loop_and_no_retrace():
+    P_d, v = make_route(VP, [(40, 15, 0.0), (40, 20, 0.04), (40, 18, -0.03)])
+    P_d2, v2 = make_route(VP, [(60, 10, 0.02), (60, 22, -0.01)])
+    P3, V3 = np.stack([P_d, P_d2, P_d]), np.stack([v, v2, v])
+    W3 = np.full_like(P3, W1100)
+    vps = stack_vehicles([VP, VP.replace(mass=30e3), VP.replace(E_b_max=2e6, soc0=0.3)])
+    batch = b.costate_batch(vps, P3, V3, W3, None, DT_H)
+    for i, vp in enumerate([VP, VP.replace(mass=30e3), VP.replace(E_b_max=2e6, soc0=0.3)]):
+        one = b.solve_costate(vp, P3[i], V3[i], W3[i], None, DT_H)
+        for name in ("lam", "E_b", "status", "n_pieces", "fuel"):
+            np.testing.assert_allclose(np.asarray(getattr(batch, name))[i],
+                                       np.asarray(getattr(one, name)), rtol=1e-9, atol=1e-6)
+    # routes x vehicles product
+    prod = b.costate_product(vps, P3[:2], V3[:2], W3[:2], None, DT_H)
+    assert prod.lam0.shape == (2, 3)
+    np.testing.assert_allclose(np.asarray(prod.E_b)[1, 2], np.asarray(
+        b.solve_costate(VP.replace(E_b_max=2e6, soc0=0.3), P3[1], V3[1], W3[1], None,
+                        DT_H).E_b), rtol=1e-9, atol=1e-6)
+    # new values (vehicle, route, start energy) do not recompile
+    n0 = b._costate_jit._cache_size()
+    b.solve_costate(VP.replace(mass=27e3), P_d2 * 0.9, v2, W3[1], None, 3.0, 0.4e6)
+    assert b._costate_jit._cache_size() == n0
+
+
+def test_input_validation():
+    P_d, v = make_route(VP, [(10, 15, 0.0)])
+    w = np.full(10, W1100)
+    with pytest.raises(ValueError, match="dt"):
+        b.solve_costate(VP, P_d, v, w, None, 0.0)
+    with pytest.raises(ValueError, match="v: shape"):
+        b.solve_costate(VP, P_d, v[:5], w)
+    with pytest.raises(ValueError, match="E_b0"):
+        b.solve_costate(VP, P_d, v, w, None, 1.0, E_b0=5e6)
+
+
+# ------------------------------------------------------------------------------------- I3
+def test_horizon_maximises_margin():
+    P_d, v = make_route(VP, [(60, 16.7, 0.01), (60, 16.7, -0.005)])
+    w = np.full(T_H, W1100)
+    E0, E_max = 2.0e6, float(VP.E_b_max)
+    h = b.level2_horizon(VP, P_d, v, w, None, DT_H, E0)
+    assert not int(h.status) & b.I3A, b.status_names(h.status)
+    gear, ok = b.select_gears(VP, P_d, v, w, np.ones(T_H, bool))
+    best = -np.inf
+    for lam in np.linspace(-6, -0.3, 300):  # grid search over constant costates
+        E = E0 + np.cumsum(np.asarray(_steps(VP, P_d, v, gear, ok, lam, DT_H).dE))
+        E = np.concatenate([[E0], E])
+        best = max(best, min(E.min(), E_max - E.max()))
+    assert float(h.margin) >= best - 1e-6 * E_max
+    E = np.asarray(h.E_b)
+    assert abs(min(E.min(), E_max - E.max()) - float(h.margin)) < 1e-6 * E_max
+
+
+def test_horizon_event_I3a():
+    # a long descent fills the battery whatever lambda_b: the first sub-problem ends on E_max
+    P_d, v = make_route(VP_SMALL, [(40, 15, 0.01), (40, 18, -0.05), (40, 16, 0.0)])
+    w = np.full(T_H, W1100)
+    h = b.level2_horizon(VP_SMALL, P_d, v, w, None, DT_H, 0.5e6)
+    assert int(h.status) & b.I3A, b.status_names(h.status)
+    assert 40 <= int(h.t_event) <= 80
+    E = np.asarray(h.E_b)
+    assert abs(E[int(h.t_event)] - 1e6) <= 1e-3 * 1e6
+    assert E[: int(h.t_event) + 1].max() <= 1e6 + 1.0
+
+
+def test_horizon_on_guard_I3b():
+    # constant demand on a guard: the two solutions run to either limit, lambda_b is the guard
+    P_d, v = make_route(VP, [(T_H, 16.7, 0.005)])
+    w = np.full(T_H, W1100)
+    h = b.level2_horizon(VP, P_d, v, w, None, DT_H, 2.0e6)
+    assert int(h.status) & b.I3B and int(h.status) & b.AT_GUARD, b.status_names(h.status)
+    assert float(h.lam_hi) - float(h.lam_lo) < 1e-9
+    # the guard itself: just below it E_b(t_f) is high, just above it low (reference loop)
+    e_lo = ref_end(VP, P_d, v, w, float(h.lam_lo) - 1e-6, DT_H, 2.0e6)
+    e_hi = ref_end(VP, P_d, v, w, float(h.lam_hi) + 1e-6, DT_H, 2.0e6)
+    assert e_lo >= float(VP.E_b_max) and e_hi <= 0.0
+    # the balanced mix keeps E_b mid-range
+    assert abs(float(h.margin) - 2.0e6) < 1e-3 * float(VP.E_b_max)
