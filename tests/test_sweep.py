@@ -1,0 +1,204 @@
+"""Sweeps with the real strategies on small problems: batching, compile counts, resume, status,
+CLI output and the Dask backend on a local two-process cluster.
+
+One sweep (two short routes of the same shape bucket, `conventional`, 6 grid points in chunks of
+4) is computed once per test process (module fixture); the other tests rerun parts of it, which
+reuses the compiled kernel (same shapes).
+"""
+
+from __future__ import annotations
+
+import shutil
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pandas as pd
+import pytest
+
+from jaxems import report as rp
+from jaxems import strategies as st
+from jaxems import sweep as sw
+
+STEEP = """distance_m,speed_limit_km_h,gradient_pct,stop_s
+0,25,0,0
+100,25,25,0
+150,25,0,0
+300,25,0,0
+"""
+SWEEP_A = """
+description = "test sweep A"
+routes = ["short_track", "steep_climb.csv"]
+strategies = ["conventional"]
+batch_size = 4
+precision = "float64"
+[grid]
+mass_kg = [20000, 30000, 60000]
+battery_MJ = [2, 4]
+"""
+TIMING = ["wall_s"]  # the only column that may differ between runs
+
+
+def make_sweep_a(d):
+    """Write sweep A (and its steep route: 25 % over 50 m, too steep for 60 t) into d."""
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "steep_climb.csv").write_text(STEEP, encoding="utf-8")
+    p = d / "sweep_a.toml"
+    p.write_text(textwrap.dedent(SWEEP_A), encoding="utf-8")
+    return p
+
+
+def same_table(a: pd.DataFrame, b: pd.DataFrame) -> None:
+    pd.testing.assert_frame_equal(a.drop(columns=TIMING), b.drop(columns=TIMING),
+                                  check_exact=True)
+
+
+@pytest.fixture(scope="module")
+def sweep_a(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sweep_a")
+    p = make_sweep_a(d)
+    summary = sw.run_sweep(p, d / "out", quiet=True)
+    return p, d / "out", summary
+
+
+def test_table_has_one_row_per_route_point_strategy(sweep_a):
+    p, out, summary = sweep_a
+    df = sw.load_sweep(out)
+    cfg = sw.load_config(p)
+    assert len(df) == 2 * 6 * 1 == summary.n_configs
+    assert not df.duplicated(["route", "grid_index", "strategy"]).any()
+    assert list(df["route"].unique()) == ["short_track", "steep_climb"]
+    pts = cfg.points()
+    for r in df.itertuples():
+        assert (r.mass_kg, r.battery_MJ) == (pts[r.grid_index]["mass_kg"],
+                                             pts[r.grid_index]["battery_MJ"])
+    for col in [*sw.RESULT_FIELDS, "status", "wall_s", "fuel_corrected_J",
+                "saving_vs_conventional_pct", "saving_vs_baseline_pct"]:
+        assert col in df.columns
+    np.testing.assert_allclose(df[df.route == "short_track"]["length_m"], 1055.0)
+    assert (out / "results.parquet").exists() and (out / "report.html").exists()
+    # conventional against itself: 0 % where ok; no baseline in this sweep: NaN
+    ok = df["status"] == "ok"
+    np.testing.assert_array_equal(df.loc[ok, "saving_vs_conventional_pct"], 0.0)
+    assert df["saving_vs_baseline_pct"].isna().all()
+
+
+def test_infeasible_route_is_recorded_and_the_sweep_goes_on(sweep_a):
+    _, out, summary = sweep_a
+    df = sw.load_sweep(out)
+    steep = df[df.route == "steep_climb"].set_index("mass_kg")["status"]
+    assert (steep.loc[60000.0] != "ok").all()
+    assert steep.loc[60000.0].str.contains("infeasible-route").all()
+    assert (steep.loc[20000.0] == "ok").all()
+    assert (df[df.route == "short_track"]["status"] == "ok").all()
+    assert summary.status_counts.get("ok", 0) >= 8
+
+
+def test_one_compilation_per_strategy_and_bucket_not_per_chunk(sweep_a):
+    """Four chunks (2 routes in the same 512-node / 256-step bucket x 2 grid chunks): only the
+    first one compiles; new masses and battery sizes and the padded last chunk reuse it."""
+    _, _, summary = sweep_a
+    stats = summary.chunk_stats
+    assert len(stats) == 4
+    assert stats[0]["compiles"] > 0
+    assert [s["compiles"] for s in stats[1:]] == [0, 0, 0]
+
+
+def test_rows_equal_a_direct_simulate_batch_call(sweep_a):
+    """The padded last chunk of steep_climb: rows == simulate_batch on the same batch."""
+    p, out, _ = sweep_a
+    cfg = sw.load_config(p)
+    chunk = [c for c in sw.plan_chunks(cfg) if c.route_index == 1][-1]
+    assert chunk.n_real == 2 and chunk.grid_index == (4, 5, 5, 5)
+    pts = cfg.points()
+    vb = sw.vehicle_batch(cfg.vehicle, [pts[i] for i in chunk.grid_index])
+    route = cfg.routes[1].route
+    with sw.precision_scope("float64"):
+        n_steps = sw.steps_for_route(cfg, route, [chunk], pts)
+        direct = st.simulate_batch(route, vb, "conventional", dt=1.0, n_steps=n_steps)
+    df = sw.load_sweep(out)
+    rows = df[(df.route == "steep_climb") & (df.grid_index >= 4)]
+    for f in sw.RESULT_FIELDS:
+        np.testing.assert_array_equal(rows[f].to_numpy(), np.asarray(direct[f])[:2], err_msg=f)
+    assert list(rows["status"]) == [str(s) for s in direct["status"][:2]]
+
+
+def test_rerun_and_resume_compute_only_what_is_missing(sweep_a, tmp_path, capsys):
+    p, out, _ = sweep_a
+    full = sw.load_sweep(out)
+    d = tmp_path / "copy"
+    shutil.copytree(out, d)
+    chunks = sorted((d / "chunks").glob("*.parquet"))
+    chunks[1].unlink()  # a lost chunk
+    stale = d / "chunks" / f".{chunks[2].name}.tmp-999-1"
+    stale.write_bytes(b"half a parquet file")  # left by a killed writer
+    assert sw.main([str(p), "--out", str(d), "--resume"]) == 0
+    io = capsys.readouterr()
+    assert "cfg/s" in io.err  # progress bar on stderr
+    assert "computed 2 configurations (1 chunks)" in io.out and "3 chunks already done" in io.out
+    assert not stale.exists()
+    same_table(sw.load_sweep(d), full)
+    # a plain rerun of a complete sweep computes nothing; --quiet: no progress bar
+    assert sw.main([str(p), "--out", str(d), "--quiet"]) == 0
+    io = capsys.readouterr()
+    assert io.err == "" and "computed 0 configurations (0 chunks)" in io.out
+    same_table(sw.load_sweep(d), full)
+
+
+def test_changed_sweep_file_is_refused_by_the_cli(sweep_a, tmp_path, capsys):
+    p, out, _ = sweep_a
+    d = tmp_path / "copy"
+    shutil.copytree(out, d)
+    q = tmp_path / "changed.toml"
+    shutil.copy(p.parent / "steep_climb.csv", tmp_path / "steep_climb.csv")
+    q.write_text(p.read_text().replace("batch_size = 4", "batch_size = 3"), encoding="utf-8")
+    before = sorted(x.name for x in (d / "chunks").iterdir())
+    assert sw.main([str(q), "--out", str(d)]) == 1
+    err = capsys.readouterr().err
+    assert "holds the results of a different sweep (changed: batch_size" in err
+    assert sorted(x.name for x in (d / "chunks").iterdir()) == before
+
+
+def test_report_of_the_sweep_is_self_contained(sweep_a):
+    _, out, _ = sweep_a
+    page = rp.write_report(out)
+    text = page.read_text(encoding="utf-8")
+    # conventional only: no savings to map, the fuel figure only
+    assert text.count("data:image/png;base64,") == 1 and (out / "fuel_per_strategy.png").exists()
+    assert "http://" not in text and "https://" not in text
+    assert "steep_climb" in text and "infeasible-route" in text
+
+
+def test_precision_scope_sets_and_restores():
+    before = jnp.zeros(()).dtype
+    with sw.precision_scope("float32"):
+        assert jnp.zeros(()).dtype == jnp.float32
+        assert jnp.asarray(np.float64(1.0)).dtype == jnp.float32
+    with sw.precision_scope("float64"):
+        assert jnp.zeros(()).dtype == jnp.float64
+    assert jnp.zeros(()).dtype == before
+
+
+@pytest.fixture
+def jax_cache_env(tmp_path_factory, monkeypatch):
+    """Worker processes share a persistent compilation cache (saves compile time only)."""
+    cache = tmp_path_factory.getbasetemp() / "jax-cache"
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(cache))
+    return cache
+
+
+def test_dask_two_worker_processes_give_the_same_table(sweep_a, tmp_path, jax_cache_env):
+    """Chunks sent to a running cluster (the --scheduler path) of two worker processes on
+    loopback; the workers run float64 because the sweep says so (the test process's x64 setting
+    does not reach them)."""
+    distributed = pytest.importorskip("dask.distributed")
+    p, out, _ = sweep_a
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  host="127.0.0.1", dashboard_address=None) as cluster:
+        summary = sw.run_sweep(p, tmp_path / "dask", scheduler=cluster.scheduler_address,
+                               quiet=True, report=False)
+    assert summary.backend == "Dask, 2 workers"
+    assert summary.computed_chunks == 4
+    same_table(sw.load_sweep(tmp_path / "dask"), sw.load_sweep(out))
+    assert jax.config.jax_enable_x64  # the test process's own setting is untouched
