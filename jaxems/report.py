@@ -77,23 +77,26 @@ def corrected_l_per_100km(df) -> np.ndarray:
 def fleet_saving(df, ref: str):
     """Fleet saving (%) per (strategy, mass_kg, battery_MJ): 100 (sum F_ref - sum F) / sum F_ref.
 
-    Sums of corrected fuel over routes and over the other grid parameters, taken only over the
-    (route, grid point) pairs where both the strategy and the reference finished with status ok.
-    Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n.
+    Sums of corrected fuel over routes and over the other grid parameters. A cell counts only
+    when every one of its (route, grid point) pairs finished with status ok for both the
+    strategy and the reference; otherwise its saving is NaN (a fleet saving over a subset of
+    the routes would not be comparable between cells). Returns a DataFrame with columns
+    strategy, mass_kg, battery_MJ, saving_pct, n (pairs ok), n_total (pairs in the cell).
     """
     import pandas as pd
 
-    ok = df[df["status"] == "ok"]
-    refs = ok[ok["strategy"] == ref][["route", "grid_index", "fuel_corrected_J"]]
-    refs = refs.rename(columns={"fuel_corrected_J": "F_ref"})
-    m = ok.merge(refs, on=["route", "grid_index"], how="inner")
+    cols = ["strategy", "mass_kg", "battery_MJ", "saving_pct", "n", "n_total"]
+    refs = df[df["strategy"] == ref][["route", "grid_index", "fuel_corrected_J", "status"]]
+    refs = refs.rename(columns={"fuel_corrected_J": "F_ref", "status": "status_ref"})
+    m = df.merge(refs, on=["route", "grid_index"], how="left")
     rows = []
     for (s, mass, bat), g in m.groupby(["strategy", "mass_kg", "battery_MJ"], sort=True):
+        ok = (g["status"] == "ok") & (g["status_ref"] == "ok")
         fr = g["F_ref"].sum()
-        rows.append({"strategy": s, "mass_kg": mass, "battery_MJ": bat,
-                     "saving_pct": 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr,
-                     "n": len(g)})
-    return pd.DataFrame(rows, columns=["strategy", "mass_kg", "battery_MJ", "saving_pct", "n"])
+        sav = 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr if ok.all() else np.nan
+        rows.append({"strategy": s, "mass_kg": mass, "battery_MJ": bat, "saving_pct": sav,
+                     "n": int(ok.sum()), "n_total": len(g)})
+    return pd.DataFrame(rows, columns=cols)
 
 
 def best_battery(fleet) -> object:
@@ -184,7 +187,8 @@ def plot_fleet_heatmap(out: Path, fleet, ref: str) -> Path | None:
         panels.append((f"{s} vs {ref}", d.pivot_table(index="mass_kg", columns="battery_MJ",
                                                       values="saving_pct", aggfunc="mean")))
     p = out / "saving_heatmap_all_routes.png"
-    ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref}")
+    ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref} "
+                              f"(blank: a route did not finish)")
     return p if ok else None
 
 

@@ -839,8 +839,16 @@ def _progress(total: int, initial: int, quiet: bool):
                 disable=quiet, dynamic_ncols=True, smoothing=0.1, mininterval=0.5)
 
 
-def _executor(workers: int | None, scheduler: str | None):
-    """A Dask client (and the cluster it started) or (None, None) for in-process runs."""
+CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+
+
+def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None = None):
+    """A Dask client (and the cluster it started) or (None, None) for in-process runs.
+
+    Worker processes of a local cluster share JAX's persistent compilation cache in
+    `cache_dir` (unless JAX_COMPILATION_CACHE_DIR is set already), so a kernel compiled by one
+    worker is loaded, not compiled again, by the others and by later runs.
+    """
     if workers is None and scheduler is None:
         return None, None
     try:
@@ -855,8 +863,11 @@ def _executor(workers: int | None, scheduler: str | None):
             raise SweepError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
     if workers is None or workers < 1:
         raise SweepError(f"--workers: expected a whole number >= 1 (got {workers})")
+    env = {}
+    if cache_dir is not None and not os.environ.get(CACHE_ENV):
+        env[CACHE_ENV] = str(Path(cache_dir).resolve())
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None)
+                           dashboard_address=None, env=env)
     return Client(cluster), cluster
 
 
@@ -907,7 +918,7 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
     own_client = None
     cluster = None
     if client is None and todo:
-        own_client, cluster = _executor(workers, scheduler)
+        own_client, cluster = _executor(workers, scheduler, out / "jax-cache")
         client = own_client
     backend = "in-process" if client is None else (
         f"Dask, {len(client.scheduler_info().get('workers', {}))} workers")
@@ -944,9 +955,13 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
                           for ri in steps}
             futs = {}
             token = cfg.fingerprint()[:12]
+            first = {}  # one chunk per (route, strategy) first: workers compile different kernels
             for c in todo:
+                first.setdefault((c.route_index, c.strategy), c.id)
+            for c in todo:
+                prio = 1 if first[(c.route_index, c.strategy)] == c.id else 0
                 f = client.submit(_compute_remote, task_of(c), route_futs[c.route_index],
-                                  key=f"jaxems-{token}-{c.id}", pure=False)
+                                  key=f"jaxems-{token}-{c.id}", pure=False, priority=prio)
                 futs[f] = c
             for f in as_completed(futs):
                 finish(futs[f], f.result())
@@ -973,6 +988,21 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
         status_counts={str(k): int(v) for k, v in counts.items()}, chunk_stats=stats,
         results=res_path, report=report_path, backend=backend,
     )
+
+
+DEMO_SWEEP = Path(__file__).resolve().parent.parent / "examples" / "demo_sweep.toml"
+
+
+def run_demo(out: str | Path = "out/demo", workers: int | None = 2, quiet: bool = False,
+             sweep_file: str | Path = DEMO_SWEEP) -> SweepSummary:
+    """The `make demo` sweep (examples/demo_sweep.toml): prints the report path first, runs
+    (or resumes) the sweep on a local Dask cluster of `workers` processes (None: in-process),
+    writes the report and prints the summary."""
+    out = Path(out)
+    print(f"jaxems demo sweep: report will be at {out / 'report.html'}", flush=True)
+    summary = run_sweep(sweep_file, out, workers=workers, quiet=quiet)
+    print(summary.text(), flush=True)
+    return summary
 
 
 # -------------------------------------------------------------------------------------- CLI
