@@ -73,6 +73,7 @@ class Obs(NamedTuple):
     E_b: Any  # battery energy (J)
     mode: Any  # active mode (int)
     gear: Any  # active gear index (int)
+    grade: Any  # measured road gradient at the current position (rise/run)
     P_req: Any  # power needed at the wheels to reach the target speed this step (W)
     v_op: Any  # speed at which the powertrain is evaluated this step (m/s)
 
@@ -179,11 +180,32 @@ def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
     e_ok = (we >= vp.we_min * (1 - 1e-9)) & (we <= vp.we_max) & (w > 0)
     ok = jnp.where(ce, e_ok, True) & jnp.where(cm, w <= vp.wm_max, True) & (cm | ~needs_motor)
     return Ranges(
-        e_lo=jnp.where(ce, pe_min / k, 0.0), e_hi=jnp.where(ce, pe_max / k, 0.0), k=k,
+        e_lo=jnp.where(ce, jnp.where(slip, 0.0, pe_min / k), 0.0),
+        e_hi=jnp.where(ce, pe_max / k, 0.0), k=k,
         pe0=jnp.where(ce, pt.engine_friction(vp, we), 0.0), we=we,
         m_lim=jnp.where(cm, pt.motor_power_limit(vp, w), 0.0),
         pm0=jnp.where(cm, pt.motor_friction(vp, w), 0.0), ce=ce, cm=cm, ok=ok,
     )
+
+
+def capacity(vp: VehicleParams, v):
+    """Largest power (W) each state (mode x gear, flattened: (4 n_gears,)) delivers at speed v,
+    -inf where it cannot run at that speed."""
+    n_g = vp.gear_ratio.shape[-1]
+    s = jnp.arange(ps.N_MODES * n_g)
+    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+    return jnp.where(r.ok, r.e_hi + r.m_lim, -jnp.inf)
+
+
+def capable(vp: VehicleParams, v, E_b, P_need, dt):
+    """(4 n_gears,) bool: the state runs at speed v and delivers P_need for dt seconds (the
+    motor's power is limited by what the battery holds)."""
+    n_g = vp.gear_ratio.shape[-1]
+    s = jnp.arange(ps.N_MODES * n_g)
+    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+    pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
+    m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
+    return r.ok & (r.e_hi + m_hi >= P_need - 1e-6 * jnp.abs(P_need))
 
 
 def _pm_of_pb(vp, r: Ranges, P_b):
@@ -210,9 +232,7 @@ def rotational_energy(vp: VehicleParams, mode, gear, v):
     return 0.5 * (jnp.where(ce, vp.I_e * we * we, 0.0) + jnp.where(cm, vp.I_m * w * w, 0.0))
 
 
-def idle_fuel_power(vp: VehicleParams):
-    """Fuel power (W) of the conventional truck's engine idling with the clutch open."""
-    return -pt.engine_friction(vp, vp.we_min) / vp.eta_e
+idle_fuel_power = ps.idle_fuel_power
 
 
 def _interp_grade(track: Track, s):
@@ -276,22 +296,39 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     v_op = jnp.where(v0 > 0, v0, ds_tgt / dt)
 
     obs = Obs(k=k, j=j, frac=frac, s=s0, v=v0, E_b=st.E_b, mode=st.mode, gear=st.gear,
-              P_req=P_req, v_op=v_op)
+              grade=grade, P_req=P_req, v_op=v_op)
     cstate, cmd = controller(cparams, cstate, vp, obs)
     lam = jnp.asarray(cmd.lam, dtype=v0.dtype)
 
-    # --- state transitions: standstill forces the open mode; infeasible states are protected
+    # --- state transitions: standstill forces the open mode; Level 0 protection keeps the
+    # driveline in a state that can run at this speed and deliver what is needed
     at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
-    req_mode = jnp.where(at_rest, MO, cmd.mode).astype(st.mode.dtype)
-    req_gear = jnp.where(at_rest, st.gear, cmd.gear).astype(st.gear.dtype)
-    r_req = state_ranges(vp, req_mode, req_gear, v_op)
-    table = ps.mode_gear_split(vp, P_req, v_op, lam)
-    Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
-    best = jnp.argmin(Hf)
     n_g = vp.gear_ratio.shape[-1]
-    fallback = ~r_req.ok & jnp.isfinite(Hf[best]) & ~at_rest
-    req_mode = jnp.where(fallback, best // n_g, req_mode).astype(st.mode.dtype)
-    req_gear = jnp.where(fallback, best % n_g, req_gear).astype(st.gear.dtype)
+    s_cur = st.mode * n_g + st.gear
+    s_req = jnp.where(at_rest, MO * n_g + st.gear, cmd.mode * n_g + cmd.gear)
+    # what must be delivered: the full demand while launching, else at least holding speed
+    P_hold = F0 * v0
+    P_need = jnp.where(v0 > 1.0, jnp.minimum(P_req, jnp.maximum(P_hold, 0.0)), P_req)
+    # a switch opens the driveline: the state switched into must still run after the speed
+    # lost meanwhile
+    dv_sw = jnp.maximum(F0, 0.0) * jnp.maximum(vp.dt_M, vp.dt_G) / vp.mass
+    ok_now = capable(vp, v_op, st.E_b, P_need, dt)
+    ok_after = ok_now & capable(vp, jnp.maximum(v_op - dv_sw, 0.1), st.E_b, P_need, dt)
+    req_ok = jnp.where(s_req == s_cur, ok_now[s_req], ok_after[s_req])
+    table = ps.mode_gear_split(vp, P_need, v_op, lam)
+    Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
+    best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
+    best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
+    best = jnp.where(jnp.any(ok_after), best_after,
+                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(vp, v_op))))
+    # a requested state that is not safe to switch into: keep its mode, change the gear
+    same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)
+    in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
+    alt = jnp.argmin(in_mode)
+    s_alt = jnp.where(jnp.isfinite(in_mode[alt]), alt, jnp.where(ok_now[s_cur], s_cur, best))
+    s_new = jnp.where(req_ok | at_rest, s_req, s_alt)
+    req_mode = (s_new // n_g).astype(st.mode.dtype)
+    req_gear = (s_new % n_g).astype(st.gear.dtype)
 
     mode_sw = (req_mode != st.mode) & ~st.done
     gear_sw = (req_gear != st.gear) & ~st.done & (req_mode != MO)

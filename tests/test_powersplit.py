@@ -39,6 +39,8 @@ def ref_split(vp, P_d, v, lam, n=N_GRID):
             if ce:
                 pe_hi = np.interp(we, f["te_max_w"], f["te_max"]) * we / k
                 pe_lo = np.interp(we, f["te_min_w"], f["te_min"]) * we / k
+                if k != 1.0:  # a slipping clutch cannot brake
+                    pe_lo = 0.0
                 pe0 = -(f["e0_lin"] * we + f["e0_quad"] * we * we)
             else:
                 pe_hi = pe_lo = pe0 = 0.0
@@ -59,7 +61,10 @@ def ref_split(vp, P_d, v, lam, n=N_GRID):
                 grid = np.zeros(1)
                 P_m = np.zeros(1)
             out = np.clip(P_d - P_m, pe_lo, pe_hi)  # brakes take what the engine cannot
-            fuel = np.maximum(k * out - pe0, 0.0) / f["eta_e"] if ce else 0.0
+            # declutched, a conventional truck's engine idles (a hybrid's is stopped)
+            idle = (f["e0_lin"] * f["we_min"] + f["e0_quad"] * f["we_min"] ** 2) / f["eta_e"]
+            fuel = np.maximum(k * out - pe0, 0.0) / f["eta_e"] if ce else (
+                idle if f["has_motor"] < 0.5 else 0.0)
             Hg = fuel - lam * (grid + f["beta"] * grid * grid)
             i = int(np.argmin(Hg))
             H[mode, g], Pb[mode, g] = Hg[i], grid[i]

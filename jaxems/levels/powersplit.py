@@ -78,6 +78,11 @@ def _safe_div(a, b):
     return a / jnp.where(b == 0, 1.0, b)
 
 
+def idle_fuel_power(vp: VehicleParams):
+    """Fuel power (W) of an engine idling at its lowest speed, declutched (conventional truck)."""
+    return -pt.engine_friction(vp, vp.we_min) / vp.eta_e
+
+
 def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
     dtype = jnp.result_type(P_d, w, lam, float)
@@ -90,7 +95,8 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     k = jnp.where(slip, _safe_div(vp.we_min, w), 1.0)
     pe_min, pe_max = pt.engine_power_limits(vp, we)
     e_ok = (we >= vp.we_min * (1 - 1e-9)) & (we <= vp.we_max) & (w > 0)
-    e_lo = jnp.where(ce, _safe_div(pe_min, k), 0.0)
+    # a slipping clutch passes torque from the faster engine to the wheels only: no braking
+    e_lo = jnp.where(ce, jnp.where(slip, 0.0, _safe_div(pe_min, k)), 0.0)
     e_hi = jnp.where(ce, _safe_div(pe_max, k), 0.0)
     pe0 = jnp.where(ce, pt.engine_friction(vp, we), 0.0)
     # motor: friction and symmetric power limit (zero when open)
@@ -134,7 +140,9 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     P_m = pm_of_pb(cands)
     P_out = jnp.where(ce, jnp.clip(P_d - P_m, e_lo, e_hi), 0.0)
     P_e = k * P_out
-    P_f = jnp.where(ce, jnp.maximum(P_e - pe0, 0.0) / vp.eta_e, 0.0)
+    # a conventional truck (no motor) idles its engine with the clutch open: idle fuel
+    idle = jnp.where(~ce & (vp.has_motor < 0.5), idle_fuel_power(vp), 0.0)
+    P_f = jnp.where(ce, jnp.maximum(P_e - pe0, 0.0) / vp.eta_e, idle)
     H_c = P_f - lam * pt.battery_internal(vp, cands)
     i = jnp.argmin(H_c)
     H = jnp.where(feasible, H_c[i], jnp.inf)

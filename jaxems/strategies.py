@@ -1,0 +1,694 @@
+"""Energy-management strategies, each run on the same plant and route (section 7).
+
+- ``conventional``: the truck without its motor (engine-only and open modes), gears by the
+  full-horizon Level 1 DP with switching costs. The non-hybrid reference of Tables 7 and 8. Its
+  engine idles with the clutch open (a conventional truck has no start-stop).
+- ``baseline``: a hybrid EMS without route preview, as a user would build one: an adaptive
+  equivalent-consumption minimisation (A-ECMS). At every step it minimises the Hamiltonian of
+  the *current* demand plus the switching cost from the current state (a one-step DP, no
+  knowledge of the road ahead), with lambda_b from state-of-charge feedback,
+  lambda_b = lambda0 + k_p (E_b / E_b_max - soc_ref), clipped to [-6, -0.3].
+- ``multilevel``: the iteration scheme of section 3.3: Level 3 -> Level 2 -> Level 1 over the
+  full horizon, `n_iter` times, omega (engine speed) and lambda_b fed back; iteration 0 starts
+  from a constant engine speed (vehicle's ``prediction_engine_speed_rpm``, 1100 rpm as in
+  Appendix D). Each iteration's decisions are run on the plant; the last one is the result.
+- ``multilevel-mpc``: the MPC scheme of section 3.4 inside the plant loop: Level 2 on a window
+  of `h2` samples re-solved every `t2` samples from the measured battery energy (I3 where the
+  window ends before the route, charge sustaining where it reaches the end), Level 1 as a DP
+  over `h1` samples from the measured mode and gear, applying the first decision. Level 3 is
+  indexed by position: re-planning it from the measured position over a 1000 s window gives the
+  same reference as the full-route profile restricted to the window (the forward/backward
+  passes are position-indexed), so it is computed once per route.
+- ``dp-bound``: the global optimum of problem (21) with the velocity fixed to the Level 3
+  prediction: a backward dynamic program over (E_b grid x mode x gear) with the same switching
+  costs, charge sustaining through a terminal penalty, then a forward rollout from the exact
+  E_b(t0) (interpolating the value function) whose decisions run on the same plant.
+
+Kernels are pure functions of one route and one vehicle (jit/vmap at the edge); `simulate`
+is the host API and `simulate_batch` the batched one used by sweeps.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import dp
+from . import plant as pl
+from . import powertrain as pt
+from . import switching as sw
+from .levels import battery as l2
+from .levels import level1 as l1
+from .levels import powersplit as ps
+from .levels import velocity as l3
+from .params import VehicleError, VehicleParams, load_vehicle, with_overrides
+from .route import Route
+
+STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound")
+HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
+
+# status codes of a run (bit flags) and their names
+OK, INFEASIBLE_ROUTE, UNFINISHED, COSTATE = 0, 1, 2, 4
+STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished",
+                COSTATE: "costate-not-converged"}
+
+
+class Options(NamedTuple):
+    """Static options of the strategies (hashable; a change recompiles).
+
+    n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref: baseline
+    A-ECMS; dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level
+    1 splits are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away
+    from E_b(t0) in dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack
+    for switching delays, as a fraction; at least 256 steps); sustain: make each multilevel
+    Level 1 plan charge sustaining on its own model (`sustaining_level1`); k_E: gain of the
+    costate's feedback on the plan's battery energy in the plant (per unit of E_b / E_b_max).
+    """
+
+    n_iter: int = 2
+    h1: int = 5
+    h2: int = 1000
+    t2: int = 1
+    lam0: float = -2.2
+    kp: float = 2.0
+    soc_ref: float = 0.5
+    dp_n_E: int = 101
+    dp_lams: int = 24
+    dp_penalty: float = 10.0
+    plant_extra: float = 0.15
+    sustain: bool = True
+    k_E: float = 5.0
+
+
+class Metrics(NamedTuple):
+    """What a run reports; scalars (one route, one vehicle)."""
+
+    length_m: Any
+    trip_time_s: Any
+    fuel_J: Any
+    delta_Eb_J: Any
+    Eb_min_J: Any
+    Eb_max_J: Any
+    mode_switches: Any
+    gear_switches: Any
+    lambda_b: Any
+    max_speed_shortfall_mps: Any
+    status: Any
+
+
+class Run(NamedTuple):
+    """A kernel's output: metrics, the plant run, the Level 3 prediction, and extras."""
+
+    metrics: Metrics
+    plant: pl.PlantResult
+    pred: l3.Prediction
+    extra: Any
+
+
+# ------------------------------------------------------------------------------ building blocks
+def level3(route: Route, vp: VehicleParams, dt, n_steps: int, w_nodes=None) -> l3.Prediction:
+    """Level 3 inside a kernel: profile on the distance grid, resampled to n_steps (static)."""
+    N = route.grade.shape[-1]
+    w = jnp.broadcast_to(vp.w_pred if w_nodes is None else w_nodes, (N,))
+    prof = l3.velocity_profile(route, vp, w)
+    return l3.resample(route, vp, prof, dt, n_steps)
+
+
+def plant_steps(n_steps: int, opts: Options) -> int:
+    extra = max(256, int(math.ceil(n_steps * opts.plant_extra)))
+    return int(math.ceil((n_steps + extra) / 64) * 64)
+
+
+class Plan(NamedTuple):
+    """A plan indexed by Level 3 step: (T,) mode, gear, costate, and the battery energy the plan
+    expects at the start of each step (J), with the gain of the costate's feedback on it."""
+
+    mode: Any
+    gear: Any
+    lam: Any
+    E_ref: Any
+    k_E: Any
+
+
+def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
+    """Follow a plan by position: request the state planned for the next step (I(k) = M(k+1));
+    split power with the plan's costate corrected by the battery energy's deviation from the
+    plan (the plant is not the plan's model: switches open the driveline, speeds differ)."""
+    T = plan.mode.shape[0]
+    j1 = jnp.minimum(obs.j + 1, T - 1)
+    err = (obs.E_b - plan.E_ref[obs.j]) / vp.E_b_max
+    lam = jnp.clip(plan.lam[obs.j] + plan.k_E * err, l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
+    return cstate, pl.Command(mode=plan.mode[j1], gear=plan.gear[j1], lam=lam, P_b=jnp.nan)
+
+
+def plan_energy(vp, P_b, mask, dt):
+    """(T,) battery energy at the start of each step along a plan's battery power."""
+    dE = jnp.where(mask, -pt.battery_internal(vp, P_b) * dt, 0.0)
+    return vp.soc0 * vp.E_b_max + jnp.concatenate([jnp.zeros(1, dE.dtype), jnp.cumsum(dE)[:-1]])
+
+
+def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, k_E) -> Plan:
+    lam = jnp.broadcast_to(lam, pred.v.shape)
+    return Plan(mode=r1.mode, gear=r1.gear, lam=lam,
+                E_ref=plan_energy(vp, r1.P_b, pred.mask, dt), k_E=jnp.asarray(k_E, lam.dtype))
+
+
+def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14):
+    """Level 1 whose own battery balance is sustained: shift lambda_b(t) by a constant found by
+    bisection so that the DP's plan ends at E_b(t0); where the plan's end energy jumps (a guard,
+    as in I2 of Level 2) the two plans either side are joined in time: the shift below the jump
+    up to a switching step t_s and above it after, t_s found by bisection (I2b's single switch).
+    Returns (Level1Result, lambda_b (T,) used)."""
+    mask = pred.mask
+    lo_b, hi_b = l2.LAM_BRACKET
+
+    def dE_of(lam_t):
+        r = _level1(vp, pred, lam_t, dt, params)
+        return jnp.sum(jnp.where(mask, -pt.battery_internal(vp, r.P_b) * dt, 0.0))
+
+    def shifted(d):
+        return jnp.clip(lam + d, lo_b, hi_b)
+
+    def bis(_, c):  # dE decreases as the shift d grows (cheaper battery: more discharge)
+        a, b = c
+        m = 0.5 * (a + b)
+        pos = dE_of(shifted(m)) > 0
+        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+
+    a, b = jax.lax.fori_loop(0, n_bisect, bis, (jnp.asarray(-1.5, lam.dtype),
+                                                 jnp.asarray(1.5, lam.dtype)))
+    la, lb = shifted(a), shifted(b)  # dE(la) > 0 >= dE(lb) when the bracket holds
+    T = pred.v.shape[0]
+    k = jnp.arange(T)
+
+    def joined(ts):
+        return jnp.where(k < ts, lb, la)  # discharge first, then charge
+
+    def bis_t(_, c):  # dE(joined(0)) = dE(la) > 0, dE(joined(T)) = dE(lb) <= 0
+        t0, t1 = c
+        m = (t0 + t1) // 2
+        pos = dE_of(joined(m)) > 0
+        return jnp.where(pos, m, t0), jnp.where(pos, t1, m)
+
+    t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t,
+                               (jnp.asarray(0), jnp.asarray(T)))
+    e0, e1 = dE_of(joined(t0)), dE_of(joined(t1))
+    lam_t = jnp.where(jnp.abs(e0) <= jnp.abs(e1), joined(t0), joined(t1))
+    return _level1(vp, pred, lam_t, dt, params), lam_t
+
+
+def _init_state(pred: l3.Prediction):
+    """The state before step 0 for Level 1: open driveline at a standing start, else free."""
+    standing = pred.v_ref[0] <= 0
+    return jnp.where(standing, ps.MO, -1).astype(jnp.int32), jnp.zeros((), jnp.int32)
+
+
+def _first_state(vp, pred, lam):
+    """Open driveline at a standing start; else the Hamiltonian's best state at step 0."""
+    _, m, g = ps.optimal_mode_gear(ps.mode_gear_split(vp, pred.P_d[0], pred.v[0], lam))
+    standing = pred.v_ref[0] <= 0
+    return jnp.where(standing, ps.MO, m), jnp.where(standing, 0, g)
+
+
+def _run_plan(route, vp, pred, plan: Plan, res1: l1.Level1Result, n_plant, dt):
+    track = pl.make_track(route, pred)
+    standing = pred.v_ref[0] <= 0
+    m0 = jnp.where(standing, ps.MO, res1.mode[0])
+    g0 = jnp.where(standing, 0, res1.gear[0])
+    return pl.run_plant(vp, track, plan_controller, plan, jnp.zeros(()), m0, g0, n_plant, dt)
+
+
+def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Metrics:
+    t = res.final.tot
+    E = res.trace.E_b
+    status = status | jnp.where(pred.feasible, OK, INFEASIBLE_ROUTE)
+    status = status | jnp.where(res.final.done, OK, UNFINISHED)
+    return Metrics(
+        length_m=pred.length, trip_time_s=t.trip_time, fuel_J=t.fuel,
+        delta_Eb_J=res.final.E_b - res.E_b0,
+        Eb_min_J=jnp.minimum(jnp.min(E), res.final.E_b),
+        Eb_max_J=jnp.maximum(jnp.max(E), res.final.E_b),
+        mode_switches=t.mode_switches, gear_switches=t.gear_switches,
+        lambda_b=jnp.asarray(lam_b, E.dtype), max_speed_shortfall_mps=t.max_shortfall,
+        status=jnp.asarray(status, jnp.int32),
+    )
+
+
+def _level1(vp, pred, lam, dt, params):
+    m0, g0 = _init_state(pred)
+    return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params)
+
+
+def _engine_speed_nodes(route, pred, w_steps):
+    """Map a per-step engine speed (T,) to the route's nodes (N,) by position (Level 3 input)."""
+    prof = pred.profile
+    moving = pred.mask & (pred.v > 0)
+    s = jnp.where(moving, pred.s, jnp.inf)
+    order = jnp.argsort(s)
+    s_sorted = s[order]
+    w_sorted = w_steps[order]
+    n_valid = jnp.sum(moving)
+    last = jnp.maximum(n_valid - 1, 0)
+    s_sorted = jnp.where(jnp.arange(s.shape[0]) < n_valid, s_sorted, s_sorted[last] + 1.0
+                         + jnp.arange(s.shape[0]))
+    w_sorted = jnp.where(jnp.arange(s.shape[0]) < n_valid, w_sorted, w_sorted[last])
+    return jnp.interp(prof.s, s_sorted, w_sorted)
+
+
+# ------------------------------------------------------------------------------ strategies
+def _lam_conventional(vp):
+    """Fuel value of mechanical energy at the crank: prices synchronisation without a battery."""
+    return -1.0 / vp.eta_e
+
+
+def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    vpc = vp.conventional()
+    pred = level3(route, vpc, dt, n_steps)
+    lam = _lam_conventional(vpc)
+    r1 = _level1(vpc, pred, lam, dt, params)
+    plan = make_plan(vpc, r1, lam, pred, dt, 0.0)
+    res = _run_plan(route, vpc, pred, plan, r1, plant_steps(n_steps, opts), dt)
+    return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
+
+
+class EcmsParams(NamedTuple):
+    lam0: Any
+    kp: Any
+    soc_ref: Any
+    switch: sw.SwitchCostParams
+
+
+def ecms_lambda(p: EcmsParams, vp, E_b):
+    """A-ECMS costate from state-of-charge feedback (no preview)."""
+    soc = E_b / vp.E_b_max
+    return jnp.clip(p.lam0 + p.kp * (soc - p.soc_ref), l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
+
+
+def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
+    """One-step DP: the current Hamiltonian plus the switching cost from the current state."""
+    lam = ecms_lambda(p, vp, obs.E_b)
+    tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
+    n_g = vp.gear_ratio.shape[-1]
+    s_cur = obs.mode * n_g + obs.gear
+    C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
+    cost = jnp.where(tab.feasible, tab.H, jnp.inf).reshape(-1) + C
+    i = jnp.argmin(cost)
+    i = jnp.where(jnp.isfinite(cost[i]), i, s_cur)
+    return cstate, pl.Command(mode=i // n_g, gear=i % n_g, lam=lam, P_b=jnp.nan)
+
+
+def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    pred = level3(route, vp, dt, n_steps)
+    p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
+                   soc_ref=jnp.asarray(opts.soc_ref), switch=params)
+    track = pl.make_track(route, pred)
+    res = pl.run_plant(vp, track, ecms_controller, p, jnp.zeros(()), ps.MO, 0,
+                       plant_steps(n_steps, opts), dt)
+    lam_first = ecms_lambda(p, vp, vp.soc0 * vp.E_b_max)
+    return Run(_metrics(res, pred, vp, lam_first, OK), res, pred, None)
+
+
+class Iteration(NamedTuple):
+    """Per iteration of the multilevel scheme: fuel (J), delta E_b (J), lambda_b(t0)."""
+
+    fuel_J: Any
+    delta_Eb_J: Any
+    lambda_b: Any
+    costate_status: Any
+
+
+def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    pred0 = level3(route, vp, dt, n_steps)
+    n_plant = plant_steps(n_steps, opts)
+
+    def iteration(carry, _):
+        pred, w = carry
+        c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt)
+        if opts.sustain:
+            r1, lam1 = sustaining_level1(vp, pred, c2.lam, dt, params)
+        else:
+            r1, lam1 = _level1(vp, pred, c2.lam, dt, params), c2.lam
+        plan = make_plan(vp, r1, lam1, pred, dt, opts.k_E)
+        res = _run_plan(route, vp, pred, plan, r1, n_plant, dt)
+        it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
+        # feed back the speed of Level 1's gears (omega) to Level 2, and the engine speed where
+        # the engine runs to Level 3 (its traction limit assumes the engine at that speed)
+        moving = pred.mask & (pred.v > 0)
+        w_new = jnp.where(moving, r1.w, w)
+        engine_on = moving & ((r1.mode == ps.MC) | (r1.mode == ps.ME))
+        w_e = jnp.where(engine_on, jnp.clip(r1.w, vp.we_min, vp.we_max), vp.w_pred)
+        pred_new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
+        return (pred_new, w_new), (it, res, pred)
+
+    w0 = jnp.full_like(pred0.v, vp.w_pred)
+    _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0), None, length=opts.n_iter)
+    last = lambda tree: jax.tree_util.tree_map(lambda x: x[-1], tree)  # noqa: E731
+    res, pred = last(ress), last(preds)
+    c_status = its.costate_status[-1]
+    status = jnp.where(c_status & (l2.INFEASIBLE | l2.PIECES_EXHAUSTED), COSTATE, OK)
+    return Run(_metrics(res, pred, vp, its.lambda_b[-1], status), res, pred, its)
+
+
+class MpcParams(NamedTuple):
+    P_d: Any  # (T + h,) the Level 3 prediction, padded for the windows
+    v: Any
+    grade: Any
+    mask: Any
+    w: Any  # (T + h,) engine speed assumed by Level 2 (constant, as iteration 0)
+    end: Any  # () index of the last valid step
+    E_target: Any  # () E_b at the end of the route (charge sustaining)
+    dt: Any
+    switch: sw.SwitchCostParams
+
+
+def _mpc_controller(h1: int, h2: int, t2: int):
+    def ctrl(p: MpcParams, cstate, vp, obs: pl.Obs):
+        lam_prev, k_last = cstate
+        j = obs.j
+        win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, h2)  # noqa: E731
+        covers_end = j + h2 > p.end
+        c_end = l2.costate_kernel(vp, win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt,
+                                  E_b0=obs.E_b, E_b_end=p.E_target, max_pieces=4)
+        c_hor = l2.horizon_kernel(vp, win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt,
+                                  obs.E_b)
+        lam_new = jnp.where(covers_end, c_end.lam0, c_hor.lam)
+        due = (obs.k - k_last) >= t2
+        lam = jnp.where(due, lam_new, lam_prev)
+        k_last = jnp.where(due, obs.k, k_last)
+        # Level 1: DP over the next h1 samples from the measured state, first decision applied
+        win1 = lambda a: jax.lax.dynamic_slice_in_dim(a, j + 1, h1)  # noqa: E731
+        tb = l1._tables(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
+        S = tb.stage.shape[1]
+        n_g = S // ps.N_MODES
+        s_cur = obs.mode * n_g + obs.gear
+        init = jnp.where(jnp.arange(S) == s_cur, 0.0, jnp.inf).astype(tb.stage.dtype)
+        s0, cost = dp.viterbi_first(tb.stage, l1.structured_transition(tb.xs, tb.consts), init,
+                                    win1(p.mask))
+        s0 = jnp.where(jnp.isfinite(cost), s0, s_cur)
+        return (lam, k_last), pl.Command(mode=s0 // n_g, gear=s0 % n_g, lam=lam, P_b=jnp.nan)
+
+    return ctrl
+
+
+def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    pred = level3(route, vp, dt, n_steps)
+    h = max(opts.h1 + 1, opts.h2)
+    padf = lambda a: jnp.concatenate([a, jnp.zeros(h, a.dtype)])  # noqa: E731
+    end = jnp.maximum(jnp.sum(pred.mask) - 1, 0)
+    E0 = vp.soc0 * vp.E_b_max
+    p = MpcParams(P_d=padf(pred.P_d), v=padf(pred.v), grade=padf(pred.grade),
+                  mask=jnp.concatenate([pred.mask, jnp.zeros(h, bool)]),
+                  w=jnp.full((n_steps + h,), vp.w_pred, pred.v.dtype), end=end, E_target=E0,
+                  dt=jnp.asarray(dt, pred.v.dtype), switch=params)
+    track = pl.make_track(route, pred)
+    ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2)
+    c0 = (jnp.asarray(opts.lam0, pred.v.dtype), jnp.asarray(-10**6, jnp.int32))
+    m0, g0 = _first_state(vp, pred, opts.lam0)
+    res = pl.run_plant(vp, track, ctrl, p, c0, m0, g0, plant_steps(n_steps, opts), dt)
+    lam_first = res.trace.lam[0]
+    return Run(_metrics(res, pred, vp, lam_first, OK), res, pred, None)
+
+
+# ------------------------------------------------------------------------------ DP bound
+BIG = 1e15  # "infeasible" in the DP bound (finite, so that interpolation stays finite)
+
+
+class BoundExtra(NamedTuple):
+    """dp-bound's own figures: the DP's predicted fuel (J), its E_b(tf) (J) and the rollout."""
+
+    fuel_dp_J: Any
+    E_end_dp_J: Any
+    mode: Any  # (T,)
+    gear: Any  # (T,)
+    lam: Any  # (T,) the costate whose Level 1 split was chosen at each step
+
+
+def dp_candidate_lams(n: int):
+    """Costate values whose Level 1 splits are dp-bound's battery-power candidates: (n,)."""
+    return -jnp.exp(jnp.linspace(jnp.log(0.5), jnp.log(6.0), n))
+
+
+def _interp_grid(V, x, dE, n_E):
+    """Linear interpolation of V: (n_E, ...) at grid coordinate x / dE; BIG outside the grid."""
+    u = x / dE
+    i0 = jnp.clip(jnp.floor(u), 0, n_E - 2).astype(jnp.int32)
+    f = u - i0
+    inside = (u >= -1e-9) & (u <= n_E - 1 + 1e-9)
+    return i0, f, inside
+
+
+def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    pred = level3(route, vp, dt, n_steps)
+    T = n_steps
+    dtype = pred.v.dtype
+    n_E = opts.dp_n_E
+    E_max = vp.E_b_max
+    dE = E_max / (n_E - 1)
+    E_grid = jnp.arange(n_E, dtype=dtype) * dE
+    E0 = vp.soc0 * E_max
+    w0 = jnp.full_like(pred.v, vp.w_pred)
+    c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w0, pred.mask, dt)  # prices switching
+    lam_sw = c2.lam
+    lams = dp_candidate_lams(opts.dp_lams).astype(dtype)
+
+    # candidate splits: (T, J, S) battery power, fuel power; infeasible -> BIG cost
+    def cands(P_d, v):
+        sp = jax.vmap(lambda lam: ps.mode_gear_split(vp, P_d, v, lam))(lams)
+        J = lams.shape[0]
+        return (sp.P_b.reshape(J, -1), sp.P_f.reshape(J, -1), sp.feasible.reshape(J, -1))
+
+    Pb, Pf, feas = jax.vmap(cands)(pred.P_d, pred.v)
+    S = Pb.shape[-1]
+    dEb = -pt.battery_internal(vp, Pb) * dt  # (T, J, S) E_b increment
+    fuel = jnp.where(feas, Pf * dt, BIG)
+    any_feas = jnp.any(feas, axis=(1, 2))
+    fuel = jnp.where(any_feas[:, None, None], fuel, 0.0)  # a step beyond capability: free
+    dEb = jnp.where(any_feas[:, None, None], dEb, 0.0)
+    Cs = jax.vmap(lambda v, g, lam: sw.switch_cost_matrix(vp, v, g, lam, params))(
+        pred.v, pred.grade, lam_sw)  # (T, S, S)
+
+    def q_of(V1, k_fuel, k_dE, E):
+        """min over candidates of fuel + V1(E + dE): E (n,) -> (n, S) value, (n, S) arg."""
+        x = E[:, None, None] + k_dE[None]  # (n, J, S)
+        i0, f, inside = _interp_grid(V1, x, dE, n_E)
+        s_idx = jnp.arange(S)[None, None, :]
+        v = (1 - f) * V1[i0, s_idx] + f * V1[i0 + 1, s_idx]
+        tot = jnp.where(inside, k_fuel[None] + v, BIG)
+        return jnp.min(tot, axis=1), jnp.argmin(tot, axis=1)
+
+    V_T = jnp.broadcast_to(opts.dp_penalty * jnp.abs(E_grid - E0)[:, None], (n_E, S))
+
+    def back(V1, inp):
+        k_fuel, k_dE, C, m = inp
+        Q, _ = q_of(V1, k_fuel, k_dE, E_grid)  # (n_E, S)
+        best, _ = dp.relax_dense(Q.T, C.T)  # best[s_prev, i] = min_s C[s_prev, s] + Q[i, s]
+        V = jnp.minimum(best.T, BIG)
+        V = jnp.where(m, V, V1)
+        return V, V1
+
+    V_0, V_next = jax.lax.scan(back, V_T, (fuel, dEb, Cs, pred.mask), reverse=True)
+    # V_next[k] is the value after step k (before step k+1)
+
+    m_init, g_init = _init_state(pred)
+    s_init = jnp.where(m_init >= 0, m_init * (S // ps.N_MODES) + g_init, -1)
+
+    def fwd(carry, inp):
+        E, s = carry
+        V1, k_fuel, k_dE, C, m = inp
+        Q, jarg = q_of(V1, k_fuel, k_dE, E[None])  # (1, S)
+        sw_cost = jnp.where(s >= 0, C[jnp.maximum(s, 0)], 0.0)
+        tot = Q[0] + sw_cost
+        s1 = jnp.argmin(tot).astype(jnp.int32)
+        j1 = jarg[0, s1]
+        E1 = E + k_dE[j1, s1]
+        cost = k_fuel[j1, s1] + sw_cost[s1]
+        s1 = jnp.where(m, s1, jnp.maximum(s, 0))
+        E1 = jnp.where(m, E1, E)
+        return (E1, s1), (s1, lams[j1], jnp.where(m, cost, 0.0), E1 - E)
+
+    (E_end, _), (path, lam_path, costs, dE_path) = jax.lax.scan(
+        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask))
+    n_g = S // ps.N_MODES
+    mode, gear = path // n_g, path % n_g
+    E_ref = vp.soc0 * E_max + jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(dE_path)[:-1]])
+    plan = Plan(mode=mode, gear=gear, lam=lam_path, E_ref=E_ref,
+                k_E=jnp.asarray(opts.k_E, dtype))
+    r1 = l1.Level1Result(*([None] * len(l1.Level1Result._fields)))._replace(mode=mode, gear=gear)
+    res = _run_plan(route, vp, pred, plan, r1, plant_steps(n_steps, opts), dt)
+    # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
+    s0 = path[0]
+    i0, f, _ = _interp_grid(V_0, E0, dE, n_E)
+    lam_dp = (V_0[i0 + 1, s0] - V_0[i0, s0]) / dE
+    extra = BoundExtra(fuel_dp_J=jnp.sum(costs), E_end_dp_J=E_end, mode=mode, gear=gear,
+                       lam=lam_path)
+    return Run(_metrics(res, pred, vp, lam_dp, OK), res, pred, extra)
+
+
+KERNELS = {
+    "conventional": run_conventional,
+    "baseline": run_baseline,
+    "multilevel": run_multilevel,
+    "multilevel-mpc": run_multilevel_mpc,
+    "dp-bound": run_dp_bound,
+}
+
+
+# ------------------------------------------------------------------------------ host API
+def check_strategy(name: str) -> str:
+    if name not in KERNELS:
+        raise ValueError(f"strategy: unknown {name!r} (choose from {', '.join(STRATEGIES)})")
+    return name
+
+
+def _kernel(strategy: str, dt: float, n_steps: int, opts: Options):
+    fn = KERNELS[strategy]
+    return lambda route, vp, params: fn(route, vp, dt, n_steps, opts, params)
+
+
+@jax.jit(static_argnames=("strategy", "dt", "n_steps", "opts"))
+def _run_one(route, vp, params, *, strategy, dt, n_steps, opts):
+    return _kernel(strategy, dt, n_steps, opts)(route, vp, params)
+
+
+@jax.jit(static_argnames=("strategy", "dt", "n_steps", "opts"))
+def _run_batch(route, vps, params, *, strategy, dt, n_steps, opts):
+    f = _kernel(strategy, dt, n_steps, opts)
+    return jax.vmap(lambda vp: f(route, vp, params).metrics)(vps)
+
+
+def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0) -> int:
+    """Static Level 3 step count for a route and a batch of vehicles (leading axis on leaves)."""
+    N = np.shape(route.grade)[-1]
+    w = jnp.broadcast_to(jnp.asarray(vehicles.w_pred)[..., None], np.shape(vehicles.w_pred) + (N,))
+    prof = jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0))(
+        route, vehicles, w.reshape(-1, N)) if np.ndim(vehicles.mass) else \
+        l3._profile_jit(route, vehicles, w)
+    return l3.steps_for(float(jnp.max(prof.trip_time)), dt)
+
+
+def _check_dt(dt):
+    if not (isinstance(dt, int | float) and math.isfinite(dt) and 0.05 <= dt <= 10):
+        raise ValueError(f"dt: must be a time step from 0.05 to 10 s (got {dt!r})")
+    return float(dt)
+
+
+def status_text(code: int) -> str:
+    """'ok' or the names of the status flags joined by '+'."""
+    names = [n for b, n in STATUS_NAMES.items() if int(code) & b]
+    return "+".join(names) if names else "ok"
+
+
+def _fields(m: Metrics, vp) -> dict:
+    out = {k: np.asarray(getattr(m, k)) for k in Metrics._fields if k != "status"}
+    out["fuel_l_per_100km"] = (np.asarray(pt.fuel_litres(vp, m.fuel_J))
+                               / (np.asarray(m.length_m) / 1e5))
+    out["fuel_corrected_J"] = out["fuel_J"] + out["lambda_b"] * out["delta_Eb_J"]
+    out["status"] = np.array([status_text(c) for c in np.atleast_1d(np.asarray(m.status))])
+    return out
+
+
+def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
+                   n_steps: int | None = None, options: Options | None = None,
+                   switching: sw.SwitchCostParams | None = None) -> dict[str, np.ndarray]:
+    """Run one strategy for one route and a batch of vehicles in one jitted, vmapped call.
+
+    vehicles: `VehicleParams` whose leaves all carry a leading batch axis B (`stack_vehicles`).
+    n_steps: static Level 3 step count (`steps_for_batch`); pass the same value for every chunk
+    of a route so that chunks share one compilation. Returns (B,) arrays keyed as the JSON of
+    `jaxems simulate` (less route, strategy, wall_s) plus `fuel_corrected_J` and `status`.
+    """
+    check_strategy(strategy)
+    dt = _check_dt(dt)
+    if n_steps is None:
+        n_steps = steps_for_batch(route, vehicles, dt)
+    opts = options or Options()
+    params = switching or sw.SwitchCostParams()
+    m = _run_batch(route, vehicles, params, strategy=strategy, dt=dt, n_steps=int(n_steps),
+                   opts=opts)
+    vp_fuel = VehicleParams(*(np.asarray(x) for x in vehicles))
+    return _fields(m, vp_fuel._replace(lhv=vp_fuel.lhv, fuel_density=vp_fuel.fuel_density))
+
+
+@dataclass
+class Result:
+    """One simulated run: the JSON fields (`as_dict`), plus traces for plots and checks."""
+
+    route: str
+    strategy: str
+    fields: dict
+    trace: pl.Trace = field(repr=False)
+    prediction: l3.Prediction = field(repr=False)
+    plant: pl.PlantResult = field(repr=False)
+    extra: Any = field(repr=False, default=None)
+
+    def __getitem__(self, key):
+        return self.as_dict()[key]
+
+    def as_dict(self) -> dict:
+        out = {"route": self.route, "strategy": self.strategy}
+        for k, v in self.fields.items():
+            v = np.asarray(v).reshape(-1)[0] if np.ndim(v) else v
+            out[k] = v.item() if hasattr(v, "item") else v
+        for k in ("mode_switches", "gear_switches"):
+            out[k] = int(out[k])
+        return out
+
+
+def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
+             dt: float = 1.0, mass_kg: float | None = None, battery_MJ: float | None = None,
+             options: Options | None = None, switching: sw.SwitchCostParams | None = None,
+             name: str | None = None, **option_kw) -> Result:
+    """Simulate one strategy on one route with one vehicle; returns a `Result`.
+
+    route: a `Route` or a path/bundled name; vehicle: `VehicleParams` or a name/path;
+    mass_kg, battery_MJ: overrides (validated: positive); options: `Options` (or its fields as
+    keywords, e.g. n_iter=3, h1=5). Bad options raise ValueError naming the option.
+    """
+    from .io import load_route, route_name
+
+    check_strategy(strategy)
+    dt = _check_dt(dt)
+    bad = set(option_kw) - set(Options._fields)
+    if bad:
+        raise ValueError(f"unknown option(s): {', '.join(sorted(bad))} "
+                         f"(options: {', '.join(Options._fields)})")
+    opts = (options or Options())._replace(**option_kw)
+    _check_options(opts)
+    if isinstance(route, Route):
+        rname = name or "route"
+    else:
+        rname = name or route_name(route)
+        route = load_route(route)
+    vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
+    vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ)
+    if np.ndim(vp.mass):
+        raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
+    params = switching or sw.SwitchCostParams()
+    n_steps = steps_for_batch(route, vp, dt)
+    t0 = time.perf_counter()
+    run = _run_one(route, vp, params, strategy=strategy, dt=dt, n_steps=n_steps, opts=opts)
+    jax.block_until_ready(run)
+    wall = time.perf_counter() - t0
+    fields = _fields(run.metrics, vp)
+    fields["wall_s"] = wall
+    return Result(route=rname, strategy=strategy, fields=fields, trace=run.plant.trace,
+                  prediction=run.pred, plant=run.plant, extra=run.extra)
+
+
+def _check_options(o: Options):
+    ints = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2}
+    for k, lo in ints.items():
+        v = getattr(o, k)
+        if not (isinstance(v, int) and v >= lo):
+            raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
+    if not (0 <= o.soc_ref <= 1):
+        raise ValueError(f"soc_ref: must be in [0, 1] (got {o.soc_ref})")
+    if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0):
+        raise ValueError("lam0 < 0, kp >= 0, dp_penalty > 0 and plant_extra >= 0 are required")
