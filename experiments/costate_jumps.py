@@ -8,8 +8,8 @@ trajectories B+ and B- just below and above it are mixed with the ratio r of eq.
 switched with the fewest switches (I2b, Figures 13-15): without limits, and within the narrowest
 band E_b(0) +- (0.25, 0.5, 1, 2, 4) E_b_max in which switching alone keeps E_b (on this route
 the flat stretches drain the battery on both sides of the guard, so switching alone cannot hold
-the real limits and I1 has to split). The bottom panel is the full Level 2 answer with the battery limits
-(I1 pieces, I2b inside the pieces at a guard).
+the real limits and I1 has to split). The bottom panel is the full Level 2 answer with the
+battery limits (I1 pieces, I2b inside the pieces at a guard).
 
     .venv/bin/python experiments/costate_jumps.py [--out DIR]
 
