@@ -2,9 +2,51 @@
 
 After van Reeven & Hofman, "Multi-Level Energy Management for Hybrid Electric Vehicles -
 Part I" (Vehicles 2019). Level 3 predicts velocity, Level 2 finds the battery costate,
-Level 1 splits power and picks modes and gears with switching costs.
+Level 1 splits power and picks modes and gears with switching costs; the plant runs the
+decisions in closed loop, and strategies compare the EMS with a conventional truck, a hybrid
+without preview and the dynamic-programming optimum.
 """
 
-from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles
+from .dp import Transition, ViterbiResult, dense_transition, viterbi, viterbi_first
+from .io import list_routes, load_route, route_name
+from .levels.battery import (
+    CostateResult,
+    HorizonResult,
+    Switching,
+    bisect_costate,
+    costate_batch,
+    costate_product,
+    level2_horizon,
+    minimal_switching,
+    solve_costate,
+    status_names,
+)
+from .levels.level1 import Level1Result, level1_batch, level1_full, level1_mpc
+from .levels.powersplit import (
+    Guards,
+    Split,
+    closed_form_mode,
+    guards,
+    hamiltonian_table,
+    interior_region,
+    mode_gear_split,
+    optimal_mode_gear,
+)
+from .levels.velocity import Prediction, Profile, predict_batch, predict_velocity
+from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, vehicle_axes
+from .route import Route, RouteError, pad_routes
+from .strategies import STRATEGIES, Options, Result, simulate, simulate_batch
+from .switching import SwitchCostParams, eps_G, eps_M, switch_cost_matrix
 
-__all__ = ["VehicleError", "VehicleParams", "load_vehicle", "stack_vehicles"]
+__all__ = [
+    "STRATEGIES", "CostateResult", "Guards", "HorizonResult", "Level1Result", "Options",
+    "Prediction", "Profile", "Result", "Route", "RouteError", "Split", "SwitchCostParams",
+    "Switching", "Transition", "VehicleError", "VehicleParams", "ViterbiResult",
+    "bisect_costate", "closed_form_mode", "costate_batch", "costate_product", "dense_transition",
+    "eps_G", "eps_M", "guards", "hamiltonian_table", "interior_region", "level1_batch",
+    "level1_full", "level1_mpc", "level2_horizon", "list_routes", "load_route", "load_vehicle",
+    "minimal_switching", "mode_gear_split", "optimal_mode_gear", "pad_routes", "predict_batch",
+    "predict_velocity", "route_name", "simulate", "simulate_batch", "solve_costate",
+    "stack_vehicles", "status_names", "switch_cost_matrix", "vehicle_axes", "viterbi",
+    "viterbi_first",
+]
