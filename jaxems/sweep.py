@@ -970,6 +970,10 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
         if own_client is not None:
             own_client.close()
         if cluster is not None:
+            import logging
+
+            # the nanny warns when it has to kill a worker that is slow to exit (JAX threads)
+            logging.getLogger("distributed.nanny").setLevel(logging.ERROR)
             cluster.close()
     wall = time.perf_counter() - t0
 
