@@ -3,12 +3,15 @@
     jaxems route ROUTE [--json]                          facts of a route file
     jaxems predict ROUTE [--vehicle NAME|PATH] [--mass KG] [--json] [--csv FILE]
                                                          Level 3 speed and power prediction
+    jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X]
+                    [--strategy NAME] [--dt S] [--n-iter N] [--json]
+                                                         one strategy on the closed-loop plant
 
 ROUTE is a `.vdri` or `.csv` file or the name of a bundled route (``short_track``,
 ``LongHaul``, ...). A bad file or value prints one line on stderr and exits with status 1.
 
 Each subcommand is a `register_*` function that adds its parser and sets ``func``; new
-subcommands (simulate, sweep, report) add one more `register_*` to `SUBCOMMANDS`.
+subcommands (sweep, report) add one more `register_*` to `SUBCOMMANDS`.
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ def _load_vehicle(args):
     from .params import load_vehicle, with_overrides
 
     vp = load_vehicle(args.vehicle)
-    return with_overrides(vp, mass_kg=args.mass)
+    return with_overrides(vp, mass_kg=args.mass, battery_MJ=getattr(args, "battery_MJ", None))
 
 
 def _load(args):
@@ -185,6 +188,86 @@ def register_predict(sub) -> None:
     p.add_argument("--csv", metavar="FILE", help="write the time series (t, s, v, a, grade, P_d)")
     p.set_defaults(func=cmd_predict)
 
+# --------------------------------------------------------------------------------- simulate
+# (JSON key, label, unit, scale, format) of the human-readable `simulate` table
+SIMULATE_ROWS = [
+    ("length_m", "length", "km", 1e-3, ".3f"),
+    ("trip_time_s", "trip time", "s", 1.0, ".1f"),
+    ("fuel_J", "fuel", "MJ", 1e-6, ".3f"),
+    ("fuel_l_per_100km", "fuel", "l/100 km", 1.0, ".2f"),
+    ("fuel_corrected_J", "fuel + lambda_b dE_b", "MJ", 1e-6, ".3f"),
+    ("delta_Eb_J", "delta E_b (end - start)", "MJ", 1e-6, "+.3f"),
+    ("Eb_min_J", "E_b min", "MJ", 1e-6, ".3f"),
+    ("Eb_max_J", "E_b max", "MJ", 1e-6, ".3f"),
+    ("lambda_b", "lambda_b (first)", "", 1.0, ".4f"),
+    ("mode_switches", "mode switches", "", 1, "d"),
+    ("gear_switches", "gear switches", "", 1, "d"),
+    ("max_speed_shortfall_mps", "max speed shortfall", "m/s", 1.0, ".3f"),
+    ("status", "status", "", None, ""),
+    ("wall_s", "wall time", "s", 1.0, ".2f"),
+]
+
+
+def _json_safe(d: dict) -> dict:
+    """Non-finite floats as null, so that the output is strict JSON."""
+    import math
+
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+            for k, v in d.items()}
+
+
+def cmd_simulate(args) -> int:
+    """`jaxems simulate`: one energy-management strategy on a route, closed loop on the plant.
+
+    Prints fuel (J and l/100 km), the battery energy balance and range, the first Level 2
+    costate, switch counts and the largest shortfall from the reference speed.
+    """
+    from .io import resolve_route, route_name
+    from .strategies import check_strategy, simulate
+
+    check_strategy(args.strategy)  # before anything is loaded or compiled
+    if args.n_iter is not None and args.n_iter < 1:
+        raise CLIError(f"--n-iter: must be a whole number >= 1 (got {args.n_iter})")
+    _enable_x64()
+    vp = _load_vehicle(args)  # mass and battery validated here
+    path = resolve_route(args.route)
+    options = {} if args.n_iter is None else {"n_iter": args.n_iter}
+    res = simulate(str(path), vp, args.strategy, dt=args.dt, name=route_name(path), **options)
+    out = res.as_dict()
+    out |= {"vehicle": str(args.vehicle), "mass_kg": float(vp.mass),
+            "battery_MJ": float(vp.E_b_max) / 1e6, "dt_s": float(args.dt)}
+    if args.json:
+        print(json.dumps(_json_safe(out)))
+        return 0
+    rows = [("route", f"{out['route']} ({path})"), ("strategy", out["strategy"]),
+            ("vehicle", f"{args.vehicle}, {out['mass_kg']:.0f} kg, "
+                        f"battery {out['battery_MJ']:g} MJ")]
+    for key, label, unit, scale, fmt in SIMULATE_ROWS:
+        v = out[key]
+        text = str(v) if scale is None else format(v * scale, fmt)
+        rows.append((label, f"{text} {unit}".rstrip()))
+    _print_table(rows)
+    return 0
+
+
+def register_simulate(sub) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate one energy-management strategy on a route",
+        description=cmd_simulate.__doc__,
+    )
+    p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
+    _common_vehicle(p)
+    p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
+                   help="usable battery energy in MJ (overrides the vehicle file)")
+    p.add_argument("--strategy", default="multilevel", metavar="NAME",
+                   help="conventional, baseline, multilevel (default), multilevel-mpc, dp-bound")
+    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
+    p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
+                   help="multilevel iterations (default 2)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_simulate)
+
 
 def _common_vehicle(p) -> None:
     p.add_argument(
@@ -203,7 +286,7 @@ def _common_vehicle(p) -> None:
 
 
 # --------------------------------------------------------------------------------- main
-SUBCOMMANDS: list[Callable] = [register_route, register_predict]
+SUBCOMMANDS: list[Callable] = [register_route, register_predict, register_simulate]
 
 
 def build_parser() -> argparse.ArgumentParser:
