@@ -36,17 +36,18 @@ from .levels.velocity import Prediction, Profile, predict_batch, predict_velocit
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, vehicle_axes
 from .route import Route, RouteError, pad_routes
 from .strategies import STRATEGIES, Options, Result, simulate, simulate_batch
+from .sweep import SweepError, load_sweep, run_sweep
 from .switching import SwitchCostParams, eps_G, eps_M, switch_cost_matrix
 
 __all__ = [
     "STRATEGIES", "CostateResult", "Guards", "HorizonResult", "Level1Result", "Options",
     "Prediction", "Profile", "Result", "Route", "RouteError", "Split", "SwitchCostParams",
-    "Switching", "Transition", "VehicleError", "VehicleParams", "ViterbiResult",
+    "SweepError", "Switching", "Transition", "VehicleError", "VehicleParams", "ViterbiResult",
     "bisect_costate", "closed_form_mode", "costate_batch", "costate_product", "dense_transition",
     "eps_G", "eps_M", "guards", "hamiltonian_table", "interior_region", "level1_batch",
-    "level1_full", "level1_mpc", "level2_horizon", "list_routes", "load_route", "load_vehicle",
+    "level1_full", "level1_mpc", "level2_horizon", "list_routes", "load_route", "load_sweep", "load_vehicle",
     "minimal_switching", "mode_gear_split", "optimal_mode_gear", "pad_routes", "predict_batch",
-    "predict_velocity", "route_name", "simulate", "simulate_batch", "solve_costate",
+    "predict_velocity", "route_name", "run_sweep", "simulate", "simulate_batch", "solve_costate",
     "stack_vehicles", "status_names", "switch_cost_matrix", "vehicle_axes", "viterbi",
     "viterbi_first",
 ]

@@ -198,8 +198,25 @@ def traction_cost_table(vp: VehicleParams, v, grade, params: SwitchCostParams):
     F_max = max_driveline_force(vp, v, params.v_min)  # (4, G)
     taus = jnp.stack([vp.dt_M, vp.dt_G, jnp.maximum(vp.dt_M, vp.dt_G)])
     c = traction_loss(vp, F0, v, taus[:, None, None], F_max[None], params).cost  # (3, 4, G)
+    c = c + stranded_cost(vp, v, F0, taus)
     c = c.at[:, MO, :].set(0.0)
     return c.reshape(3, -1)
+
+
+STRANDED_J = 1e9  # cost of switching into a state that cannot run once the switch is done
+
+
+def stranded_cost(vp: VehicleParams, v, F0, taus):
+    """(len(taus), 4, G): STRANDED_J where the state switched into could not run at the speed
+    left after the open driveline (v - F0 tau / m, uphill): a connected engine below idle (gear 1
+    may slip its clutch). Planning into such a state would leave the plant without traction
+    right after the switch, so Level 1 avoids it."""
+    v1 = jnp.maximum(v - jnp.maximum(F0, 0.0) * taus / vp.mass, 0.0)  # (K,)
+    w1 = pt.shaft_speeds(vp, v1)  # (K, G)
+    gear1 = jnp.arange(w1.shape[-1]) == 0
+    e_bad = (w1 < vp.we_min * (1 - 1e-9)) & ~gear1 & (v > 0)
+    ce, _ = mode_flags(w1.dtype)
+    return jnp.where((ce[None, :, None] > 0) & e_bad[:, None, :], STRANDED_J, 0.0)
 
 
 def switch_cost_matrix(vp: VehicleParams, v, grade, lam, params: SwitchCostParams):
