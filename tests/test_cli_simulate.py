@@ -1,0 +1,104 @@
+"""`jaxems simulate`: JSON fields and types, human table, overrides; one-line errors.
+
+The successful runs are in-process (they share the conventional strategy's compilation with
+tests/test_experiments.py); the error cases run `python -m jaxems` and fail before compiling.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from jaxems.cli import build_parser, main
+
+ROOT = Path(__file__).resolve().parent.parent
+
+FIELDS = {
+    "route": str, "strategy": str, "length_m": float, "trip_time_s": float, "fuel_J": float,
+    "fuel_l_per_100km": float, "delta_Eb_J": float, "Eb_min_J": float, "Eb_max_J": float,
+    "mode_switches": int, "gear_switches": int, "lambda_b": float,
+    "max_speed_shortfall_mps": float, "wall_s": float,
+}
+LHV_J_PER_KG, DENSITY_KG_PER_L = 42.8e6, 0.832  # data/vehicles/reference_truck.toml [fuel]
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_simulate_conventional_json(capsys):
+    code, out, err = run(capsys, "simulate", "short_track", "--strategy", "conventional",
+                         "--mass", "25000", "--json")
+    assert code == 0, err
+    assert out.count("\n") == 1  # exactly one JSON object on stdout
+    d = json.loads(out)
+    for k, typ in FIELDS.items():
+        assert isinstance(d[k], typ) and not isinstance(d[k], bool), (k, d[k])
+    assert d["route"] == "short_track" and d["strategy"] == "conventional"
+    assert d["length_m"] == pytest.approx(1055.0)
+    assert d["mass_kg"] == 25000.0 and d["status"] == "ok"
+    # the trip at 25 km/h takes 152 s; switches open the driveline and cost a little time
+    assert 1055 / (25 / 3.6) <= d["trip_time_s"] <= 1.1 * 1055 / (25 / 3.6) + 1
+    # the conventional truck has no motor: the battery stays where it started (half of 4 MJ)
+    assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"] == 2.0e6
+    assert d["mode_switches"] >= 0 and d["gear_switches"] >= 0 and d["fuel_J"] > 0
+    litres = d["fuel_J"] / LHV_J_PER_KG / DENSITY_KG_PER_L
+    assert d["fuel_l_per_100km"] == pytest.approx(litres / (d["length_m"] / 1e5), rel=1e-9)
+    assert d["fuel_corrected_J"] == pytest.approx(d["fuel_J"] + d["lambda_b"] * d["delta_Eb_J"])
+
+
+def test_simulate_battery_override_and_table(capsys):
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "conventional",
+                       "--battery-MJ", "8", "--json")
+    assert code == 0
+    d = json.loads(out)
+    assert d["battery_MJ"] == 8.0 and d["Eb_min_J"] == pytest.approx(4.0e6)  # half of 8 MJ
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "conventional")
+    assert code == 0
+    lines = out.splitlines()
+    assert lines[0].split()[0] == "route" and "short_track" in lines[0]
+    col = lines[0].index("short_track")  # values start in one column
+    assert all(len(line) > col and line[col - 2:col] == "  " for line in lines)
+    assert any(line.startswith("fuel ") and line.endswith("l/100 km") for line in lines)
+    assert any(line.startswith("gear switches") for line in lines)
+
+
+def test_simulate_registered():
+    sub = next(a for a in build_parser()._actions if a.dest == "command")
+    assert {"route", "predict", "simulate"} <= set(sub.choices)
+
+
+@pytest.mark.parametrize(
+    "args,words",
+    [
+        (["--strategy", "greedy"], "strategy: unknown 'greedy'"),
+        (["--mass", "-5"], "mass_kg: must be a positive"),
+        (["--battery-MJ", "0"], "battery_MJ: must be a positive"),
+        (["--n-iter", "0"], "--n-iter: must be a whole number >= 1"),
+    ],
+)
+def test_simulate_bad_options_in_process(capsys, args, words):
+    code, out, err = run(capsys, "simulate", "short_track", *args)
+    assert code == 1 and out == ""
+    assert err.count("\n") == 1 and err.startswith("jaxems: error: ") and words in err
+
+
+@pytest.mark.parametrize(
+    "args,words",
+    [
+        (["short_track", "--strategy", "greedy"], "unknown 'greedy'"),
+        (["short_track", "--mass", "-5"], "mass_kg: must be a positive"),
+        (["short_track", "--battery-MJ", "0"], "battery_MJ: must be a positive"),
+        (["no_such_dir/no_such_route.vdri"], "no such file"),
+    ],
+)
+def test_simulate_errors_python_dash_m(args, words):
+    r = subprocess.run([sys.executable, "-m", "jaxems", "simulate", *args], capture_output=True,
+                       text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 1 and r.stdout == ""
+    assert r.stderr.count("\n") == 1 and r.stderr.startswith("jaxems: error: ")
+    assert words in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,135 @@
+"""experiments/table7.py, table8.py and traces.py: JSON structure, row arithmetic, figures.
+
+Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
+scripts run in-process so that they share compilations with each other and with
+tests/test_cli_simulate.py (conventional, baseline and multilevel with n_iter = 2, 25 t).
+"""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxems.io import load_route
+from jaxems.levels.velocity import predict_velocity
+from jaxems.params import load_vehicle, with_overrides
+from jaxems.strategies import simulate
+
+ROOT = Path(__file__).resolve().parent.parent
+LHV_J_PER_KG, DENSITY_KG_PER_L = 42.8e6, 0.832  # data/vehicles/reference_truck.toml [fuel]
+
+
+def _script(name):
+    path = ROOT / "experiments" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"exp_{name}", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+table7, table8, traces = _script("table7"), _script("table8"), _script("traces")
+
+
+@pytest.fixture(scope="module")
+def t7():
+    return table7.run_table("short_track", 25000.0, ["conventional", "multilevel"], n_iter=2)
+
+
+def test_table7_json_is_one_object(capsys):
+    code = table7.main(["--strategies", "conventional,multilevel", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    d = json.loads(out)  # stdout holds exactly one JSON object; progress went to stderr
+    assert "table7: conventional" in err and "table7: multilevel" in err
+    labels = [r["label"] for r in d["rows"]]
+    assert labels == ["non-hybrid", "iteration 0", "iteration 1"]
+    for r in d["rows"]:
+        for k in ("strategy", "fuel_J", "fuel_l_per_100km", "delta_Eb_J", "fuel_corrected_J",
+                  "lambda_b", "reduction_pct", "paper_J_MJ", "paper_reduction_pct"):
+            assert k in r, k
+    assert [r["paper_J_MJ"] for r in d["rows"]] == [16.8, 7.91, 7.90]
+    assert d["mass_kg"] == 25000.0 and d["route"] == "short_track"
+
+
+def test_table7_rows_match_runs(t7):
+    rows = t7["rows"]
+    conv, it0, it1 = rows
+    vp = with_overrides(load_vehicle("reference_truck"), mass_kg=25000.0)
+    # the last iteration is the multilevel run itself (same compilation: n_iter is the same)
+    res = simulate("short_track", vp, "multilevel", n_iter=2).as_dict()
+    for k in ("fuel_J", "delta_Eb_J", "lambda_b", "fuel_corrected_J", "mode_switches"):
+        assert it1[k] == pytest.approx(res[k], rel=1e-12), k
+    assert (it0["iteration"], it1["iteration"], conv["iteration"]) == (0, 1, None)
+    for r in rows:
+        assert r["fuel_corrected_J"] == pytest.approx(r["fuel_J"] + r["lambda_b"] * r["delta_Eb_J"])
+        assert r["reduction_pct"] == pytest.approx(
+            100 * (1 - r["fuel_corrected_J"] / conv["fuel_corrected_J"]))
+        litres = r["fuel_J"] / LHV_J_PER_KG / DENSITY_KG_PER_L
+        assert r["fuel_l_per_100km"] == pytest.approx(litres / (1055 / 1e5), rel=1e-9)
+    assert conv["reduction_pct"] == 0.0 and conv["delta_Eb_J"] == 0.0
+    assert it0["lambda_b"] < 0 and it1["lambda_b"] < 0
+    # the hybrid saves energy on the short track (the paper: about half)
+    assert it0["reduction_pct"] > 20 and it1["reduction_pct"] > 20
+    text = table7.format_table(t7)
+    assert text.count("\n") == 2 + len(rows)
+    assert "iteration 0" in text and "16.80" in text and "52.9" in text
+
+
+def test_level2_traces_match_iteration_0(t7, tmp_path):
+    vp = with_overrides(load_vehicle("reference_truck"), mass_kg=25000.0)
+    res = simulate("short_track", vp, "multilevel", n_iter=2)
+    # iteration 0's Level 2 runs on Level 3 at the constant engine speed (predict_velocity)
+    l2 = traces.level2_traces(vp, predict_velocity(load_route("short_track"), vp, dt=1.0))
+    assert l2["lambda_b"] == pytest.approx(float(np.asarray(res.extra.lambda_b)[0]), rel=1e-6)
+    E0 = 0.5 * float(vp.E_b_max)
+    assert l2["E_b"][0] == pytest.approx(E0)
+    assert np.all((l2["E_b"] >= -1.0) & (l2["E_b"] <= float(vp.E_b_max) + 1.0))
+    assert set(np.unique(l2["mode"])) <= {0, 1, 2, 3}
+    assert np.all((l2["gear"] >= 1) & (l2["gear"] <= 12))
+    path = tmp_path / "fig.png"
+    traces.plot_run(res, vp, "test", path, l2)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_traces_main_writes_figure(tmp_path, capsys):
+    assert traces.main(["--out", str(tmp_path), "--figures", "A3"]) == 0  # multilevel, n_iter 2
+    out = capsys.readouterr().out
+    assert (tmp_path / "figA3.png").stat().st_size > 10_000 and "A3: multilevel" in out
+    assert traces.main(["--figures", "A9"]) == 1
+
+
+def test_table8_json_structure(capsys):
+    code = table8.main(["--routes", "short_track", "--strategies", "conventional,baseline",
+                        "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "table8: short_track" in err
+    d = json.loads(out)
+    assert d["mass_kg"] == 20000.0
+    rows = d["rows"]
+    assert [(r["route"], r["strategy"]) for r in rows] == [
+        ("short_track", "conventional"), ("short_track", "baseline")]
+    conv, base = rows
+    for r in rows:
+        for k in ("fuel_J", "fuel_l_per_100km", "delta_Eb_J", "fuel_corrected_J",
+                  "fuel_corrected_l_per_100km", "saving_pct", "lambda_b", "status"):
+            assert k in r, k
+        assert r["fuel_corrected_l_per_100km"] == pytest.approx(
+            r["fuel_l_per_100km"] * r["fuel_corrected_J"] / r["fuel_J"])
+    assert conv["saving_pct"] == 0.0
+    assert base["saving_pct"] == pytest.approx(
+        100 * (base["fuel_corrected_J"] / conv["fuel_corrected_J"] - 1))
+    assert [p["fuel_l_per_100km"] for p in d["paper"]] == [33.0, 31.1, 30.7]
+    text = table8.format_table(d)
+    assert "baseline" in text and "33.0 l/100 km" in text and "-7.0 %" in text
+
+
+def test_table8_bad_input_fails_before_running(capsys):
+    assert table8.main(["--strategies", "conventional,greedy"]) == 1
+    assert "unknown 'greedy'" in capsys.readouterr().err
+    assert table8.main(["--routes", "short_track,no_such_route"]) == 1
+    err = capsys.readouterr().err
+    assert "no such route file" in err and "table8: short_track" not in err
+    assert table7.main(["--mass", "-1"]) == 1
+    assert "mass_kg" in capsys.readouterr().err
