@@ -36,7 +36,6 @@ from .levels.velocity import Prediction, Profile, predict_batch, predict_velocit
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, vehicle_axes
 from .route import Route, RouteError, pad_routes
 from .strategies import STRATEGIES, Options, Result, simulate, simulate_batch
-from .sweep import SweepError, load_sweep, run_sweep
 from .switching import SwitchCostParams, eps_G, eps_M, switch_cost_matrix
 
 __all__ = [
@@ -51,3 +50,14 @@ __all__ = [
     "stack_vehicles", "status_names", "switch_cost_matrix", "vehicle_axes", "viterbi",
     "viterbi_first",
 ]
+
+
+_LAZY = {"SweepError": "sweep", "load_sweep": "sweep", "run_sweep": "sweep"}
+
+
+def __getattr__(name):  # the sweep machinery (pandas, pyarrow) loads on first use
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module 'jaxems' has no attribute {name!r}")

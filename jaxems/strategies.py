@@ -68,8 +68,8 @@ class Options(NamedTuple):
     1 splits are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away
     from E_b(t0) in dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack
     for switching delays, as a fraction; at least 256 steps); sustain: make each multilevel
-    Level 1 plan charge sustaining on its own model (`sustaining_level1`); k_E: gain of the
-    costate's feedback on the plan's battery energy in the plant (per unit of E_b / E_b_max).
+    Level 1 plan charge sustaining on its own model (`sustaining_level1`); tau_E: time constant
+    (s) of the plant's battery-power feedback on the deviation from a plan's battery energy.
     """
 
     n_iter: int = 2
@@ -84,7 +84,7 @@ class Options(NamedTuple):
     dp_penalty: float = 10.0
     plant_extra: float = 0.15
     sustain: bool = True
-    k_E: float = 5.0
+    tau_E: float = 60.0
 
 
 class Metrics(NamedTuple):
@@ -127,25 +127,28 @@ def plant_steps(n_steps: int, opts: Options) -> int:
 
 
 class Plan(NamedTuple):
-    """A plan indexed by Level 3 step: (T,) mode, gear, costate, and the battery energy the plan
-    expects at the start of each step (J), with the gain of the costate's feedback on it."""
+    """A plan indexed by Level 3 step: (T,) mode, gear, costate, battery power (W) and the
+    battery energy the plan expects at the start of each step (J); k_E (1/s) is the gain of the
+    battery power's feedback on the energy's deviation from the plan."""
 
     mode: Any
     gear: Any
     lam: Any
+    P_b: Any
     E_ref: Any
     k_E: Any
 
 
 def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
-    """Follow a plan by position: request the state planned for the next step (I(k) = M(k+1));
-    split power with the plan's costate corrected by the battery energy's deviation from the
-    plan (the plant is not the plan's model: switches open the driveline, speeds differ)."""
+    """Follow a plan by position: request the state planned for the next step (I(k) = M(k+1))
+    and the planned battery power, corrected by the battery energy's deviation from the plan
+    (the plant is not the plan's model: switches open the driveline, speeds differ); the plant
+    clips it to what the active state and the battery allow."""
     T = plan.mode.shape[0]
     j1 = jnp.minimum(obs.j + 1, T - 1)
-    err = (obs.E_b - plan.E_ref[obs.j]) / vp.E_b_max
-    lam = jnp.clip(plan.lam[obs.j] + plan.k_E * err, l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
-    return cstate, pl.Command(mode=plan.mode[j1], gear=plan.gear[j1], lam=lam, P_b=jnp.nan)
+    P_b = plan.P_b[obs.j] + plan.k_E * (obs.E_b - plan.E_ref[obs.j])
+    return cstate, pl.Command(mode=plan.mode[j1], gear=plan.gear[j1], lam=plan.lam[obs.j],
+                              P_b=P_b)
 
 
 def plan_energy(vp, P_b, mask, dt):
@@ -154,10 +157,11 @@ def plan_energy(vp, P_b, mask, dt):
     return vp.soc0 * vp.E_b_max + jnp.concatenate([jnp.zeros(1, dE.dtype), jnp.cumsum(dE)[:-1]])
 
 
-def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, k_E) -> Plan:
+def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, tau_E) -> Plan:
     lam = jnp.broadcast_to(lam, pred.v.shape)
-    return Plan(mode=r1.mode, gear=r1.gear, lam=lam,
-                E_ref=plan_energy(vp, r1.P_b, pred.mask, dt), k_E=jnp.asarray(k_E, lam.dtype))
+    return Plan(mode=r1.mode, gear=r1.gear, lam=lam, P_b=r1.P_b,
+                E_ref=plan_energy(vp, r1.P_b, pred.mask, dt),
+                k_E=jnp.asarray(1.0 / tau_E, lam.dtype))
 
 
 def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14):
@@ -273,7 +277,7 @@ def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vpc, dt, n_steps)
     lam = _lam_conventional(vpc)
     r1 = _level1(vpc, pred, lam, dt, params)
-    plan = make_plan(vpc, r1, lam, pred, dt, 0.0)
+    plan = make_plan(vpc, r1, lam, pred, dt, opts.tau_E)
     res = _run_plan(route, vpc, pred, plan, r1, plant_steps(n_steps, opts), dt)
     return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
 
@@ -335,14 +339,16 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
             r1, lam1 = sustaining_level1(vp, pred, c2.lam, dt, params)
         else:
             r1, lam1 = _level1(vp, pred, c2.lam, dt, params), c2.lam
-        plan = make_plan(vp, r1, lam1, pred, dt, opts.k_E)
+        plan = make_plan(vp, r1, lam1, pred, dt, opts.tau_E)
         res = _run_plan(route, vp, pred, plan, r1, n_plant, dt)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
-        # feed back the speed of Level 1's gears (omega) to Level 2, and the engine speed where
-        # the engine runs to Level 3 (its traction limit assumes the engine at that speed)
+        # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
+        # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
+        # drives on the motor or coasts, the estimate stays (a gear in which the engine cannot
+        # run would forbid Level 2 the engine there)
         moving = pred.mask & (pred.v > 0)
-        w_new = jnp.where(moving, r1.w, w)
         engine_on = moving & ((r1.mode == ps.MC) | (r1.mode == ps.ME))
+        w_new = jnp.where(engine_on, r1.w, w)
         w_e = jnp.where(engine_on, jnp.clip(r1.w, vp.we_min, vp.we_max), vp.w_pred)
         pred_new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
         return (pred_new, w_new), (it, res, pred)
@@ -380,8 +386,8 @@ def _mpc_controller(h1: int, h2: int, t2: int):
                                   obs.E_b)
         lam_new = jnp.where(covers_end, c_end.lam0, c_hor.lam)
         due = (obs.k - k_last) >= t2
-        lam = jnp.where(due, lam_new, lam_prev)
-        k_last = jnp.where(due, obs.k, k_last)
+        lam = jnp.where(due, lam_new, lam_prev).astype(lam_prev.dtype)
+        k_last = jnp.where(due, obs.k, k_last).astype(k_last.dtype)
         # Level 1: DP over the next h1 samples from the measured state, first decision applied
         win1 = lambda a: jax.lax.dynamic_slice_in_dim(a, j + 1, h1)  # noqa: E731
         tb = l1._tables(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
@@ -501,7 +507,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
 
     def fwd(carry, inp):
         E, s = carry
-        V1, k_fuel, k_dE, C, m = inp
+        V1, k_fuel, k_dE, C, m, k_Pb = inp
         Q, jarg = q_of(V1, k_fuel, k_dE, E[None])  # (1, S)
         sw_cost = jnp.where(s >= 0, C[jnp.maximum(s, 0)], 0.0)
         tot = Q[0] + sw_cost
@@ -511,15 +517,15 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         cost = k_fuel[j1, s1] + sw_cost[s1]
         s1 = jnp.where(m, s1, jnp.maximum(s, 0))
         E1 = jnp.where(m, E1, E)
-        return (E1, s1), (s1, lams[j1], jnp.where(m, cost, 0.0), E1 - E)
+        return (E1, s1), (s1, lams[j1], jnp.where(m, cost, 0.0), E1 - E, k_Pb[j1, s1])
 
-    (E_end, _), (path, lam_path, costs, dE_path) = jax.lax.scan(
-        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask))
+    (E_end, _), (path, lam_path, costs, dE_path, Pb_path) = jax.lax.scan(
+        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask, Pb))
     n_g = S // ps.N_MODES
     mode, gear = path // n_g, path % n_g
     E_ref = vp.soc0 * E_max + jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(dE_path)[:-1]])
-    plan = Plan(mode=mode, gear=gear, lam=lam_path, E_ref=E_ref,
-                k_E=jnp.asarray(opts.k_E, dtype))
+    plan = Plan(mode=mode, gear=gear, lam=lam_path, P_b=Pb_path, E_ref=E_ref,
+                k_E=jnp.asarray(1.0 / opts.tau_E, dtype))
     r1 = l1.Level1Result(*([None] * len(l1.Level1Result._fields)))._replace(mode=mode, gear=gear)
     res = _run_plan(route, vp, pred, plan, r1, plant_steps(n_steps, opts), dt)
     # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
@@ -690,5 +696,7 @@ def _check_options(o: Options):
             raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
     if not (0 <= o.soc_ref <= 1):
         raise ValueError(f"soc_ref: must be in [0, 1] (got {o.soc_ref})")
-    if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0):
-        raise ValueError("lam0 < 0, kp >= 0, dp_penalty > 0 and plant_extra >= 0 are required")
+    if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0
+            and o.tau_E > 0):
+        raise ValueError("lam0 < 0, kp >= 0, dp_penalty > 0, plant_extra >= 0 and tau_E > 0 "
+                         "are required")
