@@ -164,11 +164,13 @@ def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, tau_E) -> Plan:
                 k_E=jnp.asarray(1.0 / tau_E, lam.dtype))
 
 
-def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14):
+def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14, gap: float = 0.05):
     """Level 1 whose own battery balance is sustained: shift lambda_b(t) by a constant found by
     bisection so that the DP's plan ends at E_b(t0); where the plan's end energy jumps (a guard,
     as in I2 of Level 2) the two plans either side are joined in time: the shift below the jump
     up to a switching step t_s and above it after, t_s found by bisection (I2b's single switch).
+    The result is the candidate closest to charge sustaining: where Level 1's decisions move
+    the battery in large steps (a whole climb on the motor or not) a residual remains.
     Returns (Level1Result, lambda_b (T,) used)."""
     mask = pred.mask
     lo_b, hi_b = l2.LAM_BRACKET
@@ -191,9 +193,12 @@ def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14):
     la, lb = shifted(a), shifted(b)  # dE(la) > 0 >= dE(lb) when the bracket holds
     T = pred.v.shape[0]
     k = jnp.arange(T)
+    # either side of the jump, shifted apart so that the DP, which weighs switching costs over
+    # the whole horizon, follows each side in its own part of the route
+    ja, jb = shifted(a - gap), shifted(b + gap)
 
     def joined(ts):
-        return jnp.where(k < ts, lb, la)  # discharge first, then charge
+        return jnp.where(k < ts, jb, ja)  # discharge first, then charge
 
     def bis_t(_, c):  # dE(joined(0)) = dE(la) > 0, dE(joined(T)) = dE(lb) <= 0
         t0, t1 = c
@@ -203,8 +208,9 @@ def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14):
 
     t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t,
                                (jnp.asarray(0), jnp.asarray(T)))
-    e0, e1 = dE_of(joined(t0)), dE_of(joined(t1))
-    lam_t = jnp.where(jnp.abs(e0) <= jnp.abs(e1), joined(t0), joined(t1))
+    cands = jnp.stack([la, lb, joined(t0), joined(t1)])
+    errs = jax.vmap(dE_of)(cands)
+    lam_t = cands[jnp.argmin(jnp.abs(errs))]
     return _level1(vp, pred, lam_t, dt, params), lam_t
 
 
