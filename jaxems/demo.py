@@ -1,8 +1,12 @@
 """`python -m jaxems.demo --out out`: the main job on the bundled data (what `make demo` runs).
 
-For now: Level 3 velocity prediction on every bundled route for the reference truck, batched
-with `vmap` (one compilation for all routes). Prints a summary table and writes one PNG per
-route to the output folder: v(s) against the speed limit and the elevation, and P_d(t).
+1. Level 3 velocity prediction on every bundled route (one `vmap`): a summary table and one
+   PNG per route (v(s) against the speed limit and the elevation, and P_d(t)).
+2. The fleet sweep of `examples/demo_sweep.toml` (bundled routes x masses x battery sizes x
+   conventional / baseline / multilevel) on a local Dask cluster, with its report
+   (`OUT/demo/report.html`, printed first).
+3. The Table 8 comparison from the sweep: fuel per strategy and route at 20 t, 4 MJ.
+4. The plant traces of the multi-level EMS on the short track at 25 t (Figure A3).
 """
 
 from __future__ import annotations
@@ -65,10 +69,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out", help="output folder for plots (default out/)")
     ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
+    ap.add_argument("--workers", type=int, default=2,
+                    help="Dask workers for the sweep (0: in-process; default 2)")
+    ap.add_argument("--quiet", action="store_true", help="no progress bar")
+    ap.add_argument("--level3-only", action="store_true", help="only the Level 3 part")
     args = ap.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if not args.level3_only:
+        print(f"jaxems demo: the report will be at {out / 'demo' / 'report.html'}", flush=True)
     t0 = time.perf_counter()
     vp = load_vehicle(args.vehicle)
     paths = list_routes()
@@ -104,7 +114,57 @@ def main(argv=None) -> int:
         f"E+ traction energy, E- braking energy at the wheels (sum of P_d dt). "
         f"Level 3 for {len(names)} routes in {t_pred:.1f} s (one vmap); plots in {out}/"
     )
+    if args.level3_only:
+        return 0
+    from .sweep import load_sweep, run_demo
+
+    print()
+    summary = run_demo(out=out / "demo", workers=args.workers or None, quiet=args.quiet)
+    print()
+    print(table8_text(load_sweep(summary.out)))
+    print()
+    write_traces(out, vehicle=args.vehicle)
+    print(f"report: {out / 'demo' / 'report.html'}")
     return 0
+
+
+def table8_text(df, mass_kg: float = 20000.0, battery_MJ: float = 4.0) -> str:
+    """The Table 8 comparison from a sweep: l/100 km and saving (%) against conventional (on
+    fuel corrected for the remaining battery energy) per route, at one mass and battery."""
+    sel = df[(df.mass_kg == mass_kg) & (df.battery_MJ == battery_MJ)]
+    strategies = [s for s in ("conventional", "baseline", "multilevel", "multilevel-mpc",
+                              "dp-bound") if s in set(sel.strategy)]
+    lines = [f"Table 8 comparison ({mass_kg / 1000:g} t, {battery_MJ:g} MJ battery): "
+             f"l/100 km (saving % vs conventional, corrected for delta E_b)"]
+    head = f"{'route':<18}" + "".join(f"{s:>22}" for s in strategies)
+    lines += [head, "-" * len(head)]
+    for route, g in sel.groupby("route", sort=True):
+        cells = []
+        for s in strategies:
+            r = g[g.strategy == s]
+            if r.empty:
+                cells.append(f"{'-':>22}")
+                continue
+            r = r.iloc[0]
+            sv = r.get("saving_vs_conventional_pct", float("nan"))
+            note = "" if r.status == "ok" else f" {r.status}"
+            cells.append(f"{r.fuel_l_per_100km:>12.2f} ({sv:+6.1f} %){note}")
+        lines.append(f"{route:<18}" + "".join(cells))
+    lines.append("paper (long haul, 25 t): 33.0 / 31.1 (-5.8 %) / 30.7 (-7.0 %) l/100 km")
+    return "\n".join(lines)
+
+
+def write_traces(out: Path, vehicle: str = "reference_truck") -> None:
+    """Figure A3 of the paper from our model: multilevel (2 iterations) on the short track."""
+    from .report import plot_run
+    from .strategies import simulate
+
+    res = simulate("short_track", vehicle, "multilevel", mass_kg=25000.0)
+    path = out / "traces_short_track_multilevel.png"
+    plot_run(res, path, title="short track, 25 t: multi-level EMS (iteration 1)")
+    d = res.as_dict()
+    print(f"short track, 25 t, multilevel: {d['fuel_J'] / 1e6:.2f} MJ fuel, "
+          f"delta E_b {d['delta_Eb_J'] / 1e6:+.2f} MJ; traces in {path}")
 
 
 if __name__ == "__main__":

@@ -54,21 +54,21 @@ STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bo
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 
 # status codes of a run (bit flags) and their names
-OK, INFEASIBLE_ROUTE, UNFINISHED, COSTATE = 0, 1, 2, 4
-STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished",
-                COSTATE: "costate-not-converged"}
+OK, INFEASIBLE_ROUTE, UNFINISHED = 0, 1, 2
+STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished"}
 
 
 class Options(NamedTuple):
     """Static options of the strategies (hashable; a change recompiles).
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
-    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref: baseline
-    A-ECMS; dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, dwell: baseline
+    A-ECMS (dwell: least steps between its switches); dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level
     1 splits are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away
     from E_b(t0) in dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack
     for switching delays, as a fraction; at least 256 steps); sustain: make each multilevel
-    Level 1 plan charge sustaining on its own model (`sustaining_level1`); tau_E: time constant
+    Level 1 plan charge sustaining on its own model (`sustaining_level1`); l2_pieces: the most
+    pieces of Level 2's piecewise-constant costate (I1); tau_E: time constant
     (s) of the plant's battery-power feedback on the deviation from a plan's battery energy.
     """
 
@@ -79,11 +79,13 @@ class Options(NamedTuple):
     lam0: float = -2.2
     kp: float = 2.0
     soc_ref: float = 0.5
+    dwell: int = 3
     dp_n_E: int = 101
     dp_lams: int = 24
     dp_penalty: float = 10.0
     plant_extra: float = 0.15
     sustain: bool = True
+    l2_pieces: int = 32
     tau_E: float = 60.0
 
 
@@ -292,6 +294,7 @@ class EcmsParams(NamedTuple):
     lam0: Any
     kp: Any
     soc_ref: Any
+    dwell: Any  # steps
     switch: sw.SwitchCostParams
 
 
@@ -302,7 +305,10 @@ def ecms_lambda(p: EcmsParams, vp, E_b):
 
 
 def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
-    """One-step DP: the current Hamiltonian plus the switching cost from the current state."""
+    """One-step DP: the current Hamiltonian plus the switching cost from the current state,
+    with a minimum dwell time between switches (as shift logic has), unless the current state
+    cannot serve (the plant's protection then switches anyway)."""
+    since = cstate  # steps since the last switch
     lam = ecms_lambda(p, vp, obs.E_b)
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
     n_g = vp.gear_ratio.shape[-1]
@@ -310,16 +316,18 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
     cost = jnp.where(tab.feasible, tab.H, jnp.inf).reshape(-1) + C
     i = jnp.argmin(cost)
-    i = jnp.where(jnp.isfinite(cost[i]), i, s_cur)
-    return cstate, pl.Command(mode=i // n_g, gear=i % n_g, lam=lam, P_b=jnp.nan)
+    i = jnp.where(jnp.isfinite(cost[i]) & (since >= p.dwell), i, s_cur)
+    since = jnp.where(i == s_cur, since + 1, 0).astype(since.dtype)
+    return since, pl.Command(mode=i // n_g, gear=i % n_g, lam=lam, P_b=jnp.nan)
 
 
 def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
-                   soc_ref=jnp.asarray(opts.soc_ref), switch=params)
+                   soc_ref=jnp.asarray(opts.soc_ref), dwell=jnp.asarray(opts.dwell),
+                   switch=params)
     track = pl.make_track(route, pred)
-    res = pl.run_plant(vp, track, ecms_controller, p, jnp.zeros(()), ps.MO, 0,
+    res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
     lam_first = ecms_lambda(p, vp, vp.soc0 * vp.E_b_max)
     return Run(_metrics(res, pred, vp, lam_first, OK), res, pred, None)
@@ -340,7 +348,8 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
 
     def iteration(carry, _):
         pred, w = carry
-        c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt)
+        c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt,
+                               max_pieces=opts.l2_pieces)
         if opts.sustain:
             r1, lam1 = sustaining_level1(vp, pred, c2.lam, dt, params)
         else:
@@ -363,9 +372,9 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0), None, length=opts.n_iter)
     last = lambda tree: jax.tree_util.tree_map(lambda x: x[-1], tree)  # noqa: E731
     res, pred = last(ress), last(preds)
-    c_status = its.costate_status[-1]
-    status = jnp.where(c_status & (l2.INFEASIBLE | l2.PIECES_EXHAUSTED), COSTATE, OK)
-    return Run(_metrics(res, pred, vp, its.lambda_b[-1], status), res, pred, its)
+    # Level 2's own flags (at a guard, pieces exhausted, ...) stay in `extra`: the run is
+    # complete whatever they say, and its battery balance is reported
+    return Run(_metrics(res, pred, vp, its.lambda_b[-1], OK), res, pred, its)
 
 
 class MpcParams(NamedTuple):
@@ -380,18 +389,24 @@ class MpcParams(NamedTuple):
     switch: sw.SwitchCostParams
 
 
-def _mpc_controller(h1: int, h2: int, t2: int):
+def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24):
     def ctrl(p: MpcParams, cstate, vp, obs: pl.Obs):
         lam_prev, k_last = cstate
         j = obs.j
         win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, h2)  # noqa: E731
         covers_end = j + h2 > p.end
-        c_end = l2.costate_kernel(vp, win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt,
-                                  E_b0=obs.E_b, E_b_end=p.E_target, max_pieces=4)
-        c_hor = l2.horizon_kernel(vp, win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt,
-                                  obs.E_b)
-        lam_new = jnp.where(covers_end, c_end.lam0, c_hor.lam)
+        args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
+
+        def to_end():  # the window reaches the route's end: charge sustaining there
+            return l2.costate_kernel(vp, *args, E_b0=obs.E_b, E_b_end=p.E_target,
+                                     n_iter=l2_iter, max_pieces=1).lam0
+
+        def limited():  # I3: the largest distance to the battery limits over the window
+            return l2.horizon_kernel(vp, *args, obs.E_b, n_iter=l2_iter, max_pieces=1).lam
+
         due = (obs.k - k_last) >= t2
+        lam_new = jax.lax.cond(due, lambda: jax.lax.cond(covers_end, to_end, limited),
+                               lambda: lam_prev.astype(p.P_d.dtype))
         lam = jnp.where(due, lam_new, lam_prev).astype(lam_prev.dtype)
         k_last = jnp.where(due, obs.k, k_last).astype(k_last.dtype)
         # Level 1: DP over the next h1 samples from the measured state, first decision applied
@@ -695,7 +710,8 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
 
 
 def _check_options(o: Options):
-    ints = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2}
+    ints = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
+            "l2_pieces": 1}
     for k, lo in ints.items():
         v = getattr(o, k)
         if not (isinstance(v, int) and v >= lo):

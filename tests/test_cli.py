@@ -120,6 +120,6 @@ def test_python_dash_m_and_experiment():
 def test_demo_runs(tmp_path):
     from jaxems import demo
 
-    assert demo.main(["--out", str(tmp_path)]) == 0
+    assert demo.main(["--out", str(tmp_path), "--level3-only"]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert "level3_short_track.png" in pngs and len(pngs) == 4
