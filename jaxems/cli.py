@@ -286,7 +286,20 @@ def _common_vehicle(p) -> None:
 
 
 # --------------------------------------------------------------------------------- main
-SUBCOMMANDS: list[Callable] = [register_route, register_predict, register_simulate]
+def register_sweep(sub) -> None:
+    from .sweep import register_sweep as reg
+
+    reg(sub)
+
+
+def register_report(sub) -> None:
+    from .report import register_report as reg
+
+    reg(sub)
+
+
+SUBCOMMANDS: list[Callable] = [register_route, register_predict, register_simulate,
+                               register_sweep, register_report]
 
 
 def build_parser() -> argparse.ArgumentParser:

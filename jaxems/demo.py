@@ -156,12 +156,14 @@ def table8_text(df, mass_kg: float = 20000.0, battery_MJ: float = 4.0) -> str:
 
 def write_traces(out: Path, vehicle: str = "reference_truck") -> None:
     """Figure A3 of the paper from our model: multilevel (2 iterations) on the short track."""
+    from .params import load_vehicle, with_overrides
     from .report import plot_run
     from .strategies import simulate
 
-    res = simulate("short_track", vehicle, "multilevel", mass_kg=25000.0)
+    vp = with_overrides(load_vehicle(vehicle), mass_kg=25000.0)
+    res = simulate("short_track", vp, "multilevel")
     path = out / "traces_short_track_multilevel.png"
-    plot_run(res, path, title="short track, 25 t: multi-level EMS (iteration 1)")
+    plot_run(res, vp, "multi-level EMS, 25 t (iteration 1)", path)
     d = res.as_dict()
     print(f"short track, 25 t, multilevel: {d['fuel_J'] / 1e6:.2f} MJ fuel, "
           f"delta E_b {d['delta_Eb_J'] / 1e6:+.2f} MJ; traces in {path}")

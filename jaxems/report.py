@@ -461,3 +461,55 @@ if __name__ == "__main__":
     from jaxems.report import main as _main
 
     sys.exit(_main())
+
+
+MODE_NAMES = ["Mc", "Me", "Mm", "Mo"]
+
+
+def plot_run(res, vp, title: str, path: Path, lvl2: dict | None = None) -> None:
+    """Five panels over distance (P_d and P_m, mode, gear, E_b, v and v_ref) of a simulated run
+    (`jaxems.simulate` Result) to a PNG; `lvl2` adds Level 2's decisions as dashed lines
+    (Figures A2-A4 of the paper)."""
+    plt = _plt()
+    tr = res.trace
+    d = res.as_dict()
+    live = np.asarray(tr.t) < d["trip_time_s"]
+    g = lambda x: np.asarray(x)[live]  # noqa: E731
+    s = g(tr.s)
+    pred = res.prediction
+    pm = np.asarray(pred.mask)
+    fig, ax = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
+    ax[0].plot(np.asarray(pred.s)[pm], np.asarray(pred.P_d)[pm] / 1e3, "k:", lw=1.2,
+               label="P_d (Level 3)")
+    ax[0].plot(s, g(tr.P_m) / 1e3, "C0-", drawstyle="steps-post", label="P_m")
+    ax[1].plot(s, g(tr.mode), "C1-", drawstyle="steps-post", label="mode")
+    ax[2].plot(s, g(tr.gear) + 1, "C2-", drawstyle="steps-post", label="gear")
+    ax[3].plot(s, g(tr.E_b) / 1e6, "C3-", label="E_b")
+    ax[4].plot(s, g(tr.v) * 3.6, "C4-", label="v")
+    ax[4].plot(s, g(tr.v_ref) * 3.6, "k--", lw=0.8, label="v_ref (Level 3)")
+    if lvl2 is not None:
+        kw = dict(ls="--", lw=1.0, alpha=0.8, drawstyle="steps-post")
+        ax[0].plot(lvl2["s"], lvl2["P_m"] / 1e3, color="C0", label="P_m (Level 2)", **kw)
+        ax[1].plot(lvl2["s"], lvl2["mode"], color="C1", label="mode (Level 2)", **kw)
+        ax[2].plot(lvl2["s"], lvl2["gear"], color="C2", label="gear (Level 2)", **kw)
+        ax[3].plot(lvl2["s"], lvl2["E_b"] / 1e6, color="C3", ls="--", lw=1.0,
+                   label="E_b (Level 2)")
+    E_max = float(vp.E_b_max) / 1e6
+    for y in (0.0, E_max):
+        ax[3].axhline(y, color="0.6", lw=0.6)
+    ax[0].set_ylabel("power (kW)")
+    ax[1].set_ylabel("mode")
+    ax[1].set_yticks(range(4), MODE_NAMES)
+    ax[2].set_ylabel("gear")
+    ax[3].set_ylabel("E_b (MJ)")
+    ax[4].set_ylabel("v (km/h)")
+    ax[4].set_xlabel("distance (m)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(fontsize=7, loc="best")
+    ax[0].set_title(f"{title}: {d['route']}, fuel {d['fuel_J'] / 1e6:.2f} MJ, "
+                    f"dE_b {d['delta_Eb_J'] / 1e6:+.2f} MJ, lambda_b {d['lambda_b']:.3f}",
+                    fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

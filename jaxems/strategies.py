@@ -85,6 +85,7 @@ class Options(NamedTuple):
     dp_penalty: float = 10.0
     plant_extra: float = 0.15
     sustain: bool = True
+    guard_sides: bool = True
     l2_pieces: int = 32
     tau_E: float = 60.0
 
@@ -164,6 +165,25 @@ def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, tau_E) -> Plan:
     return Plan(mode=r1.mode, gear=r1.gear, lam=lam, P_b=r1.P_b,
                 E_ref=plan_energy(vp, r1.P_b, pred.mask, dt),
                 k_E=jnp.asarray(1.0 / tau_E, lam.dtype))
+
+
+def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
+    """(T,) costate for Level 1 that carries Level 2's switching sequence at the guards (I2b).
+
+    At a guard B1/B2 both sides have (nearly) the same lambda_b but different battery paths;
+    Level 1, which sees switching costs, would pick one side for long stretches and leave the
+    battery far from Level 2's path. Where a piece of Level 2's solution sits on a jump, lambda_b
+    is moved `gap` to the side Level 2's I2b sequence is on at each step (B+: more negative,
+    charging; B-: less negative), so that Level 1 follows the sequence; elsewhere it is Level
+    2's costate unchanged."""
+    T = c2.lam.shape[0]
+    K = c2.lam_lo.shape[0]
+    k = jnp.arange(T)
+    pid = jnp.clip(jnp.searchsorted(c2.boundaries, k, side="right") - 1, 0, K - 1)
+    jump = jnp.abs(jax.ops.segment_sum(c2.dE_plus - c2.dE_minus, pid, K)) > tol
+    lam_lo, lam_hi = c2.lam_lo[pid], c2.lam_hi[pid]
+    side = jnp.where(c2.sel > 0.5, lam_lo - gap, lam_hi + gap)
+    return jnp.clip(jnp.where(jump[pid], side, c2.lam), l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
 
 
 def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14, gap: float = 0.05):
@@ -350,10 +370,11 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         pred, w = carry
         c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt,
                                max_pieces=opts.l2_pieces)
+        lam_g = guard_lambda(c2, 1e-3 * vp.E_b_max) if opts.guard_sides else c2.lam
         if opts.sustain:
-            r1, lam1 = sustaining_level1(vp, pred, c2.lam, dt, params)
+            r1, lam1 = sustaining_level1(vp, pred, lam_g, dt, params)
         else:
-            r1, lam1 = _level1(vp, pred, c2.lam, dt, params), c2.lam
+            r1, lam1 = _level1(vp, pred, lam_g, dt, params), lam_g
         plan = make_plan(vp, r1, lam1, pred, dt, opts.tau_E)
         res = _run_plan(route, vp, pred, plan, r1, n_plant, dt)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
