@@ -34,7 +34,6 @@ from jaxems import powertrain as pt  # noqa: E402
 from jaxems.levels import battery as b  # noqa: E402
 from jaxems.params import RPM, load_vehicle  # noqa: E402
 
-
 SEGMENTS = [(400, 0.008), (200, -0.01), (400, 0.012), (200, -0.015), (400, 0.008), (400, 0.0)]
 
 

@@ -152,40 +152,14 @@ class PlantResult(NamedTuple):
 
 
 # ------------------------------------------------------------------------------ components
-class Ranges(NamedTuple):
-    """Power ranges of one (mode, gear) at gearbox speed w; see `powersplit` for the model."""
-
-    e_lo: Any
-    e_hi: Any
-    k: Any
-    pe0: Any
-    we: Any
-    m_lim: Any
-    pm0: Any
-    ce: Any
-    cm: Any
-    ok: Any
+Ranges = ps.Ranges
 
 
 def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
-    """Engine output range, slip factor, motor limit and speed feasibility of one state."""
-    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
-    needs_motor = jnp.asarray(ps.MOTOR_CONNECTED)[mode]
-    cm = needs_motor & (vp.has_motor > 0.5)
+    """`powersplit.Ranges` of one (mode, gear) at vehicle speed v."""
     w = vp.gear_ratio[gear] * vp.r_d * v
-    slip = (gear == 0) & (w < vp.we_min)
-    we = jnp.where(slip, vp.we_min, w)
-    k = jnp.where(slip, vp.we_min / jnp.where(w > 0, w, 1.0), 1.0)
-    pe_min, pe_max = pt.engine_power_limits(vp, we)
-    e_ok = (we >= vp.we_min * (1 - 1e-9)) & (we <= vp.we_max) & (w > 0)
-    ok = jnp.where(ce, e_ok, True) & jnp.where(cm, w <= vp.wm_max, True) & (cm | ~needs_motor)
-    return Ranges(
-        e_lo=jnp.where(ce, jnp.where(slip, 0.0, pe_min / k), 0.0),
-        e_hi=jnp.where(ce, pe_max / k, 0.0), k=k,
-        pe0=jnp.where(ce, pt.engine_friction(vp, we), 0.0), we=we,
-        m_lim=jnp.where(cm, pt.motor_power_limit(vp, w), 0.0),
-        pm0=jnp.where(cm, pt.motor_friction(vp, w), 0.0), ce=ce, cm=cm, ok=ok,
-    )
+    return ps.component_ranges(vp, w, jnp.asarray(ps.ENGINE_CONNECTED)[mode],
+                               jnp.asarray(ps.MOTOR_CONNECTED)[mode], gear == 0)
 
 
 def capacity(vp: VehicleParams, v):
@@ -206,15 +180,6 @@ def capable(vp: VehicleParams, v, E_b, P_need, dt):
     pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
     m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
     return r.ok & (r.e_hi + m_hi >= P_need - 1e-6 * jnp.abs(P_need))
-
-
-def _pm_of_pb(vp, r: Ranges, P_b):
-    return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
-
-
-def _pb_of_pm(vp, r: Ranges, P_m):
-    d = P_m - r.pm0
-    return jnp.where(r.cm, jnp.where(d > 0, d / vp.eta_m, d * vp.eta_m), 0.0)
 
 
 def _pb_of_pbi(vp, P_bi):
@@ -321,11 +286,12 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
     best = jnp.where(jnp.any(ok_after), best_after,
                      jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(vp, v_op))))
-    # a requested state that is not safe to switch into: keep its mode, change the gear
+    # a requested state that is not safe to switch into: stay where the current state still
+    # serves (no hunting), else keep the requested mode in a gear that serves, else the best
     same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)
     in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
     alt = jnp.argmin(in_mode)
-    s_alt = jnp.where(jnp.isfinite(in_mode[alt]), alt, jnp.where(ok_now[s_cur], s_cur, best))
+    s_alt = jnp.where(ok_now[s_cur], s_cur, jnp.where(jnp.isfinite(in_mode[alt]), alt, best))
     s_new = jnp.where(req_ok | at_rest, s_req, s_alt)
     req_mode = (s_new // n_g).astype(st.mode.dtype)
     req_gear = (s_new % n_g).astype(st.gear.dtype)
@@ -350,19 +316,17 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     traction = (1.0 - f_open) * r.ok
     cap_hi = traction * (r.e_hi + r.m_lim)
     P_dem = jnp.minimum(P_req, cap_hi)  # traction-limited demand (brakes take any excess)
-    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
-    cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode]
-    opt = ps._split_one(vp, P_dem, _w(vp, gear, v_op), lam, ce, cm, gear == 0)
+    opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
     P_b = jnp.where(jnp.isfinite(cmd.P_b), cmd.P_b, opt.P_b)
     P_b = jnp.where(traction > 0, P_b, 0.0)
     # battery power range of this state at this demand, and the battery's energy limits
-    pb_lo = _pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))
-    pb_hi = _pb_of_pm(vp, r, r.m_lim)
+    pb_lo = ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))
+    pb_hi = ps.pb_of_pm(vp, r, r.m_lim)
     E_avail = st.E_b - E_sync_b
     pb_hi = jnp.minimum(pb_hi, _pb_of_pbi(vp, E_avail / dt))
     pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - vp.E_b_max) / dt))
     P_b = jnp.clip(P_b, jnp.minimum(pb_lo, pb_hi), pb_hi)
-    P_m = _pm_of_pb(vp, r, P_b) * (traction > 0)
+    P_m = ps.pm_of_pb(vp, r, P_b) * (traction > 0)
     P_b = jnp.where(traction > 0, P_b, 0.0)
     P_out = jnp.where(r.ce & (traction > 0), jnp.clip(P_dem - P_m, r.e_lo, r.e_hi), 0.0)
     P_p = P_out + P_m
@@ -419,10 +383,6 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     return (new, cparams, cstate), tr
 
 
-def _w(vp, gear, v):
-    return vp.gear_ratio[gear] * vp.r_d * v
-
-
 def make_track(route, pred) -> Track:
     """The plant's `Track` from a `Route` and its Level 3 `Prediction` (one route)."""
     prof = pred.profile
@@ -445,7 +405,8 @@ def make_track(route, pred) -> Track:
     stop_s = jnp.concatenate([nxt[:, 0], jnp.array([jnp.inf], prof.s.dtype)])
     stop_t = jnp.concatenate([nxt[:, 1], jnp.zeros(1, prof.s.dtype)])
     # the end of a route without a final stop: no stop; padding nodes lie beyond the end
-    grid_s = jnp.where(jnp.asarray(route.mask), prof.s, pred.length + 1.0 + jnp.arange(prof.s.shape[0]))
+    beyond = pred.length + 1.0 + jnp.arange(prof.s.shape[0])
+    grid_s = jnp.where(jnp.asarray(route.mask), prof.s, beyond)
     return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
                  stop_s=stop_s, stop_t=stop_t, length=pred.length)
 

@@ -62,14 +62,16 @@ class Options(NamedTuple):
     """Static options of the strategies (hashable; a change recompiles).
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
-    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, dwell: baseline
-    A-ECMS (dwell: least steps between its switches); dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level
-    1 splits are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away
-    from E_b(t0) in dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack
-    for switching delays, as a fraction; at least 256 steps); sustain: make each multilevel
-    Level 1 plan charge sustaining on its own model (`sustaining_level1`); l2_pieces: the most
-    pieces of Level 2's piecewise-constant costate (I1); tau_E: time constant
-    (s) of the plant's battery-power feedback on the deviation from a plan's battery energy.
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, dwell:
+    baseline A-ECMS (dwell: least steps between its switches); dp_n_E: E_b grid points of
+    dp-bound; dp_lams: number of costate values whose Level 1 splits are dp-bound's
+    battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from E_b(t0) in
+    dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack for switching
+    delays, as a fraction; at least 256 steps); sustain: make each multilevel Level 1 plan
+    charge sustaining on its own model (`sustaining_level1`); guard_sides: Level 1 follows
+    Level 2's I2b sides at guards (`guard_lambda`); l2_pieces: the most pieces of Level 2's
+    piecewise-constant costate (I1); tau_E: time constant (s) of the plant's battery-power
+    feedback on the deviation from a plan's battery energy.
     """
 
     n_iter: int = 2
@@ -494,7 +496,6 @@ def _interp_grid(V, x, dE, n_E):
 
 def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
-    T = n_steps
     dtype = pred.v.dtype
     n_E = opts.dp_n_E
     E_max = vp.E_b_max

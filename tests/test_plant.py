@@ -120,7 +120,8 @@ def test_conventional_idles_and_never_uses_the_motor():
     assert np.allclose(np.asarray(tr.P_m), 0.0) and np.allclose(np.asarray(tr.P_b), 0.0)
     assert set(np.unique(np.asarray(tr.mode))) <= {ps.ME, ps.MO}
     v = np.asarray(tr.v)
-    standing = (v[:-1] == 0) & (v[1:] == 0) & (np.asarray(tr.t)[:-1] < float(res.final.tot.trip_time))
+    live = np.asarray(tr.t)[:-1] < float(res.final.tot.trip_time)
+    standing = (v[:-1] == 0) & (v[1:] == 0) & live
     assert standing.sum() >= 15
     idle = float(P.idle_fuel_power(vp))
     assert np.allclose(np.asarray(tr.P_f)[:-1][standing], idle)

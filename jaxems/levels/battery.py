@@ -84,7 +84,7 @@ import numpy as np
 
 from .. import powertrain as pt
 from ..params import VehicleParams
-from .powersplit import ENGINE_CONNECTED, MOTOR_CONNECTED, Split, _split_one, mode_gear_split
+from .powersplit import mode_gear_split, modes_at_gear
 
 # ----------------------------------------------------------------------------- status bit flags
 OK = 0
@@ -134,20 +134,6 @@ class Level2Steps(NamedTuple):
     E_f: jax.Array
     P_m: jax.Array
     mode: jax.Array
-
-
-def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
-    """The Level 1 split of the four modes in one gear: `Split` of shape (4,).
-
-    Equal to `mode_gear_split(vp, P_d, v, lam)[:, gear]` (tested), at a twelfth of the cost:
-    the same kernel evaluated for one gear only. Scalars in.
-    """
-    w = pt.shaft_speeds(vp, v)[gear]
-    ce = jnp.array(ENGINE_CONNECTED)
-    cm = jnp.array(MOTOR_CONNECTED)
-    launch = gear == 0
-    per_mode = jax.vmap(_split_one, in_axes=(None, None, None, None, 0, 0, None))
-    return per_mode(vp, P_d, w, lam, ce, cm, launch)
 
 
 def select_gears(vp: VehicleParams, P_d, v, w, mask):

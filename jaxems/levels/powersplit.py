@@ -83,9 +83,27 @@ def idle_fuel_power(vp: VehicleParams):
     return -pt.engine_friction(vp, vp.we_min) / vp.eta_e
 
 
-def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
-    """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
-    dtype = jnp.result_type(P_d, w, lam, float)
+class Ranges(NamedTuple):
+    """What one (mode, gear) can do at gearbox speed w (scalars): engine output range
+    [e_lo, e_hi] at the clutch, slip factor k and crank speed we (launch), engine friction pe0,
+    motor limit m_lim and friction pm0 (zero when open), connection flags ce, cm, and ok: the
+    state can run at this speed (and has the components it needs)."""
+
+    e_lo: jax.Array
+    e_hi: jax.Array
+    k: jax.Array
+    pe0: jax.Array
+    we: jax.Array
+    m_lim: jax.Array
+    pm0: jax.Array
+    ce: jax.Array
+    cm: jax.Array
+    ok: jax.Array
+
+
+def component_ranges(vp: VehicleParams, w, ce, cm, launch) -> Ranges:
+    """`Ranges` of a mode (ce, cm: engine / motor connected) at gearbox speed w (rad/s);
+    launch: gear 1, whose clutch may slip below idle speed."""
     ce = jnp.asarray(ce)
     needs_motor = jnp.asarray(cm)
     cm = needs_motor & (vp.has_motor > 0.5)  # a conventional truck has no motor modes
@@ -95,34 +113,44 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     k = jnp.where(slip, _safe_div(vp.we_min, w), 1.0)
     pe_min, pe_max = pt.engine_power_limits(vp, we)
     e_ok = (we >= vp.we_min * (1 - 1e-9)) & (we <= vp.we_max) & (w > 0)
-    # a slipping clutch passes torque from the faster engine to the wheels only: no braking
-    e_lo = jnp.where(ce, jnp.where(slip, 0.0, _safe_div(pe_min, k)), 0.0)
-    e_hi = jnp.where(ce, _safe_div(pe_max, k), 0.0)
-    pe0 = jnp.where(ce, pt.engine_friction(vp, we), 0.0)
-    # motor: friction and symmetric power limit (zero when open)
-    m_ok = w <= vp.wm_max
-    m_lim = jnp.where(cm, pt.motor_power_limit(vp, w), 0.0)
-    pm0 = jnp.where(cm, pt.motor_friction(vp, w), 0.0)
+    ok = jnp.where(ce, e_ok, True) & jnp.where(cm, w <= vp.wm_max, True) & (cm | ~needs_motor)
+    return Ranges(
+        # a slipping clutch passes torque from the faster engine to the wheels only: no braking
+        e_lo=jnp.where(ce, jnp.where(slip, 0.0, _safe_div(pe_min, k)), 0.0),
+        e_hi=jnp.where(ce, _safe_div(pe_max, k), 0.0),
+        k=k, pe0=jnp.where(ce, pt.engine_friction(vp, we), 0.0), we=we,
+        m_lim=jnp.where(cm, pt.motor_power_limit(vp, w), 0.0),
+        pm0=jnp.where(cm, pt.motor_friction(vp, w), 0.0), ce=ce, cm=cm, ok=ok,
+    )
 
-    def pb_of_pm(P_m):  # inverse of eq. 4 (zero when the motor is open)
-        d = P_m - pm0
-        return jnp.where(cm, jnp.where(d > 0, d / vp.eta_m, d * vp.eta_m), 0.0)
 
-    def pm_of_pb(P_b):  # eq. 4
-        return jnp.where(cm, pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
+def pb_of_pm(vp: VehicleParams, r: Ranges, P_m):
+    """Battery power for motor output P_m (inverse of eq. 4); zero when the motor is open."""
+    d = P_m - r.pm0
+    return jnp.where(r.cm, jnp.where(d > 0, d / vp.eta_m, d * vp.eta_m), 0.0)
 
+
+def pm_of_pb(vp: VehicleParams, r: Ranges, P_b):
+    """Motor output for battery power P_b (eq. 4); zero when the motor is open."""
+    return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
+
+
+def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
+    """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
+    dtype = jnp.result_type(P_d, w, lam, float)
+    r = component_ranges(vp, w, ce, cm, launch)
+    ce, cm, k, e_lo, e_hi, pe0, m_lim = r.ce, r.cm, r.k, r.e_lo, r.e_hi, r.pe0, r.m_lim
     pm_lo = jnp.maximum(-m_lim, P_d - e_hi)
     pm_hi = m_lim
-    feasible = (pm_lo <= pm_hi) & jnp.where(ce, e_ok, True) & jnp.where(cm, m_ok, True)
-    feasible = feasible & (cm | ~needs_motor)
+    feasible = (pm_lo <= pm_hi) & r.ok
     pm_lo = jnp.minimum(pm_lo, pm_hi)
-    lo, hi = pb_of_pm(pm_lo), pb_of_pm(pm_hi)
+    lo, hi = pb_of_pm(vp, r, pm_lo), pb_of_pm(vp, r, pm_hi)
 
     two_bl = 2.0 * vp.beta * lam
     stat_dis = -_safe_div(lam + k * vp.eta_m / vp.eta_e, two_bl)
     stat_chg = -_safe_div(lam + k / (vp.eta_e * vp.eta_m), two_bl)
-    kink_fuel = pb_of_pm(P_d - _safe_div(pe0, k))
-    kink_brake = pb_of_pm(P_d - e_lo)
+    kink_fuel = pb_of_pm(vp, r, P_d - _safe_div(pe0, k))
+    kink_brake = pb_of_pm(vp, r, P_d - e_lo)
     cands = jnp.stack(
         [
             lo,
@@ -137,7 +165,7 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     ).astype(dtype)
     cands = jnp.clip(cands, lo, hi)
 
-    P_m = pm_of_pb(cands)
+    P_m = pm_of_pb(vp, r, cands)
     P_out = jnp.where(ce, jnp.clip(P_d - P_m, e_lo, e_hi), 0.0)
     P_e = k * P_out
     # a conventional truck (no motor) idles its engine with the clutch open: idle fuel
@@ -159,6 +187,22 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
         w=w,
         feasible=feasible,
     )
+
+
+def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
+    """The optimal split of every mode in one gear (index): `Split` of shape (4,), equal to
+    `mode_gear_split(...)[:, gear]` at a twelfth of the cost."""
+    w = vp.gear_ratio[gear] * vp.r_d * v
+    per_mode = jax.vmap(_split_one, in_axes=(None, None, None, None, 0, 0, None))
+    return per_mode(vp, P_d, w, lam, jnp.array(ENGINE_CONNECTED), jnp.array(MOTOR_CONNECTED),
+                    gear == 0)
+
+
+def split_state(vp: VehicleParams, P_d, v, lam, mode, gear) -> Split:
+    """The optimal split of one (mode, gear) (indices, may be traced): scalar `Split`."""
+    w = vp.gear_ratio[gear] * vp.r_d * v
+    return _split_one(vp, P_d, w, lam, jnp.asarray(ENGINE_CONNECTED)[mode],
+                      jnp.asarray(MOTOR_CONNECTED)[mode], gear == 0)
 
 
 def mode_gear_split(vp: VehicleParams, P_d, v, lam) -> Split:
