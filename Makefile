@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(PY) -m jaxems.demo --out out
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2 -p no:cacheprovider
+	$(PY) -m pytest -n 2 --dist loadgroup -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_level1.py

@@ -157,7 +157,7 @@ Ranges = ps.Ranges
 
 def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
     """`powersplit.Ranges` of one (mode, gear) at vehicle speed v."""
-    w = vp.gear_ratio[gear] * vp.r_d * v
+    w = pt.shaft_speeds(vp, v)[gear]
     return ps.component_ranges(vp, w, jnp.asarray(ps.ENGINE_CONNECTED)[mode],
                                jnp.asarray(ps.MOTOR_CONNECTED)[mode], gear == 0)
 

@@ -13,6 +13,9 @@ import pytest
 from jaxems import strategies as S
 from jaxems.params import load_vehicle
 
+# one worker computes this module's shared fixture (pytest-xdist --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("test_strategies")
+
 VP = load_vehicle().replace(mass=25000.0)
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 

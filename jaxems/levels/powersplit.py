@@ -192,7 +192,7 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
 def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
     """The optimal split of every mode in one gear (index): `Split` of shape (4,), equal to
     `mode_gear_split(...)[:, gear]` at a twelfth of the cost."""
-    w = vp.gear_ratio[gear] * vp.r_d * v
+    w = pt.shaft_speeds(vp, v)[gear]
     per_mode = jax.vmap(_split_one, in_axes=(None, None, None, None, 0, 0, None))
     return per_mode(vp, P_d, w, lam, jnp.array(ENGINE_CONNECTED), jnp.array(MOTOR_CONNECTED),
                     gear == 0)
@@ -200,7 +200,7 @@ def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
 
 def split_state(vp: VehicleParams, P_d, v, lam, mode, gear) -> Split:
     """The optimal split of one (mode, gear) (indices, may be traced): scalar `Split`."""
-    w = vp.gear_ratio[gear] * vp.r_d * v
+    w = pt.shaft_speeds(vp, v)[gear]
     return _split_one(vp, P_d, w, lam, jnp.asarray(ENGINE_CONNECTED)[mode],
                       jnp.asarray(MOTOR_CONNECTED)[mode], gear == 0)
 
