@@ -21,21 +21,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 from jaxems.params import load_vehicle  # noqa: E402
-from jaxems.switching import A1_TRANSITIONS, table_a1  # noqa: E402
+from jaxems.switching import A1_TRANSITIONS, PAPER_A1, PAPER_A1_AVG, table_a1  # noqa: E402
 
-PAPER = {
-    "G_down_Mm": 10,
-    "G_down_Me": 20,
-    "G_down_Mc": 30,
-    "G_up": 0,
-    "Me->Mm": 16,
-    "Mm->Me": 31,
-    "Me->Mc": 16,
-    "Mc->Me": 0,
-    "Mm->Mc": 31,
-    "Mc->Mm": 0,
-}
-PAPER_AVG = {"Me->Mm": 24, "Mm->Me": 24, "Me->Mc": 8, "Mc->Me": 8, "Mm->Mc": 16, "Mc->Mm": 16}
+PAPER, PAPER_AVG = PAPER_A1, PAPER_A1_AVG
 
 
 def main(argv=None) -> int:

@@ -255,6 +255,13 @@ def eps_G(vp: VehicleParams, v, grade, lam, mode, params: SwitchCostParams):
 
 
 # ---------------------------------------------------------------------------- paper's tables
+# Table A1 of the paper (kJ, lambda_b = -2.2): direction costs and averages of linked events
+PAPER_A1 = {
+    "G_down_Mm": 10, "G_down_Me": 20, "G_down_Mc": 30, "G_up": 0,
+    "Me->Mm": 16, "Mm->Me": 31, "Me->Mc": 16, "Mc->Me": 0, "Mm->Mc": 31, "Mc->Mm": 0,
+}
+PAPER_A1_AVG = {"Me->Mm": 24, "Mm->Me": 24, "Me->Mc": 8, "Mc->Me": 8, "Mm->Mc": 16, "Mc->Mm": 16}
+
 A1_TRANSITIONS = (
     "G_down_Mm",
     "G_down_Me",

@@ -16,20 +16,7 @@ VP = load_vehicle()
 PRM = sw.SwitchCostParams()
 cost_matrix_j = jax.jit(sw.switch_cost_matrix)
 
-# Table A1 of the paper (kJ, lambda_b = -2.2), direction costs and averages of linked events
-PAPER_A1 = {
-    "G_down_Mm": 10,
-    "G_down_Me": 20,
-    "G_down_Mc": 30,
-    "G_up": 0,
-    "Me->Mm": 16,
-    "Mm->Me": 31,
-    "Me->Mc": 16,
-    "Mc->Me": 0,
-    "Mm->Mc": 31,
-    "Mc->Mm": 0,
-}
-PAPER_A1_AVG = {"Me->Mm": 24, "Me->Mc": 8, "Mm->Mc": 16}
+PAPER_A1, PAPER_A1_AVG = sw.PAPER_A1, sw.PAPER_A1_AVG
 
 
 def test_table_a1_matches_paper():
