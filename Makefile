@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m jaxems.demo --out out
+	@$(PY) -m jaxems.demo --out out
 
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadgroup -p no:cacheprovider
