@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
-import re
 import sys
 import time
+from pathlib import Path
 
 from jax import config
 
@@ -33,6 +32,9 @@ from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
+
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 DEFAULT_STRATEGIES = STRATEGIES  # conventional, baseline, multilevel, multilevel-mpc, dp-bound
 
@@ -40,15 +42,6 @@ DEFAULT_STRATEGIES = STRATEGIES  # conventional, baseline, multilevel, multileve
 PAPER = {"conventional": (33.0, 0.0), "baseline": (31.1, -5.8), "multilevel-mpc": (30.7, -7.0)}
 PAPER_LABELS = {"conventional": "non-hybrid", "baseline": "EMS 'baseline'",
                 "multilevel-mpc": "EMS 'preview'"}
-
-
-def _log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
-def _num(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def run_table(routes=DEFAULT_ROUTES, strategies=DEFAULT_STRATEGIES, mass_kg: float = 20000.0,
@@ -88,12 +81,6 @@ def run_table(routes=DEFAULT_ROUTES, strategies=DEFAULT_STRATEGIES, mass_kg: flo
               "saving_pct": v[1]} for s, v in PAPER.items()]
     return {"table": 8, "vehicle": vehicle, "mass_kg": float(mass_kg), "dt_s": float(dt),
             "rows": rows, "paper": paper}
-
-
-def _f(x, fmt: str) -> str:
-    """x formatted with fmt (e.g. '8.3f'); a right-aligned '-' of the same width for None."""
-    width = int(re.match(r"[+-]?(\d*)", fmt).group(1) or 0)
-    return "-".rjust(width) if x is None else format(x, fmt)
 
 
 def format_table(out: dict) -> str:

@@ -59,7 +59,7 @@ def test_kill_9_then_resume_equals_uninterrupted(tmp_path, tmp_path_factory):
     proc.wait(timeout=60)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.read().decode()[-2000:]
     done_at_kill = sw.finished_chunks(killed)
-    assert 1 <= len(done_at_kill) < 4  # killed in the middle: work was left
+    assert 0 < len(done_at_kill) < 4  # killed in the middle: work was left
     assert not (killed / "results.parquet").exists()
 
     # 2. resume: only the missing chunks are computed
