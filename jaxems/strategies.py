@@ -47,7 +47,7 @@ from .levels import battery as l2
 from .levels import level1 as l1
 from .levels import powersplit as ps
 from .levels import velocity as l3
-from .params import VehicleError, VehicleParams, load_vehicle, with_overrides
+from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, with_overrides
 from .route import Route
 
 STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound")
@@ -612,13 +612,17 @@ def _run_batch(route, vps, params, *, strategy, dt, n_steps, opts):
     return jax.vmap(lambda vp: f(route, vp, params).metrics)(vps)
 
 
+_profile_batch = jax.jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
+
+
 def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0) -> int:
-    """Static Level 3 step count for a route and a batch of vehicles (leading axis on leaves)."""
-    N = np.shape(route.grade)[-1]
-    w = jnp.broadcast_to(jnp.asarray(vehicles.w_pred)[..., None], np.shape(vehicles.w_pred) + (N,))
-    prof = jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0))(
-        route, vehicles, w.reshape(-1, N)) if np.ndim(vehicles.mass) else \
-        l3._profile_jit(route, vehicles, w)
+    """Static Level 3 step count for a route and one vehicle or a batch (leading axis on every
+    leaf): the longest trip, bucketed (`velocity.steps_for`)."""
+    if np.ndim(vehicles.mass) == 0:
+        vehicles = stack_vehicles([vehicles])
+    B, N = np.shape(vehicles.mass)[0], np.shape(route.grade)[-1]
+    w = np.broadcast_to(np.asarray(vehicles.w_pred)[:, None], (B, N))
+    prof = _profile_batch(route, vehicles, w)
     return l3.steps_for(float(jnp.max(prof.trip_time)), dt)
 
 
@@ -661,8 +665,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     params = switching or sw.SwitchCostParams()
     m = _run_batch(route, vehicles, params, strategy=strategy, dt=dt, n_steps=int(n_steps),
                    opts=opts)
-    vp_fuel = VehicleParams(*(np.asarray(x) for x in vehicles))
-    return _fields(m, vp_fuel._replace(lhv=vp_fuel.lhv, fuel_density=vp_fuel.fuel_density))
+    return _fields(m, VehicleParams(*(np.asarray(x) for x in vehicles)))
 
 
 @dataclass
