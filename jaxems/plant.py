@@ -162,21 +162,21 @@ def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
                                jnp.asarray(ps.MOTOR_CONNECTED)[mode], gear == 0)
 
 
-def capacity(vp: VehicleParams, v):
-    """Largest power (W) each state (mode x gear, flattened: (4 n_gears,)) delivers at speed v,
-    -inf where it cannot run at that speed."""
+def all_ranges(vp: VehicleParams, v) -> Ranges:
+    """`Ranges` of every state (mode x gear, flattened: leaves (4 n_gears,)) at speed v."""
     n_g = vp.gear_ratio.shape[-1]
     s = jnp.arange(ps.N_MODES * n_g)
-    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+    return jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+
+
+def capacity(r: Ranges):
+    """Largest power (W) each state of `all_ranges` delivers, -inf where it cannot run."""
     return jnp.where(r.ok, r.e_hi + r.m_lim, -jnp.inf)
 
 
-def capable(vp: VehicleParams, v, E_b, P_need, dt):
-    """(4 n_gears,) bool: the state runs at speed v and delivers P_need for dt seconds (the
-    motor's power is limited by what the battery holds)."""
-    n_g = vp.gear_ratio.shape[-1]
-    s = jnp.arange(ps.N_MODES * n_g)
-    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt):
+    """Bool per state of `all_ranges`: it runs and delivers P_need for dt seconds (the motor's
+    power is limited by what the battery holds)."""
     pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
     m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
     return r.ok & (r.e_hi + m_hi >= P_need - 1e-6 * jnp.abs(P_need))
@@ -277,15 +277,17 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # a switch opens the driveline: the state switched into must still run after the speed
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * jnp.maximum(vp.dt_M, vp.dt_G) / vp.mass
-    ok_now = capable(vp, v_op, st.E_b, P_need, dt)
-    ok_after = ok_now & capable(vp, jnp.maximum(v_op - dv_sw, 0.1), st.E_b, P_need, dt)
+    r_now = all_ranges(vp, v_op)
+    ok_now = capable(vp, r_now, st.E_b, P_need, dt)
+    ok_after = ok_now & capable(vp, all_ranges(vp, jnp.maximum(v_op - dv_sw, 0.1)), st.E_b,
+                                P_need, dt)
     req_ok = jnp.where(s_req == s_cur, ok_now[s_req], ok_after[s_req])
     table = ps.mode_gear_split(vp, P_need, v_op, lam)
     Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
     best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
     best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
     best = jnp.where(jnp.any(ok_after), best_after,
-                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(vp, v_op))))
+                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(r_now))))
     # a requested state that is not safe to switch into: stay where the current state still
     # serves (no hunting), else keep the requested mode in a gear that serves, else the best
     same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)

@@ -251,11 +251,12 @@ def _first_state(vp, pred, lam):
     return jnp.where(standing, ps.MO, m), jnp.where(standing, 0, g)
 
 
-def _run_plan(route, vp, pred, plan: Plan, res1: l1.Level1Result, n_plant, dt):
+def _run_plan(route, vp, pred, plan: Plan, n_plant, dt):
+    """Run a plan on the plant, starting in its first state (open driveline when standing)."""
     track = pl.make_track(route, pred)
     standing = pred.v_ref[0] <= 0
-    m0 = jnp.where(standing, ps.MO, res1.mode[0])
-    g0 = jnp.where(standing, 0, res1.gear[0])
+    m0 = jnp.where(standing, ps.MO, plan.mode[0])
+    g0 = jnp.where(standing, 0, plan.gear[0])
     return pl.run_plant(vp, track, plan_controller, plan, jnp.zeros(()), m0, g0, n_plant, dt)
 
 
@@ -308,7 +309,7 @@ def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     lam = _lam_conventional(vpc)
     r1 = _level1(vpc, pred, lam, dt, params)
     plan = make_plan(vpc, r1, lam, pred, dt, opts.tau_E)
-    res = _run_plan(route, vpc, pred, plan, r1, plant_steps(n_steps, opts), dt)
+    res = _run_plan(route, vpc, pred, plan, plant_steps(n_steps, opts), dt)
     return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
 
 
@@ -378,7 +379,7 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         else:
             r1, lam1 = _level1(vp, pred, lam_g, dt, params), lam_g
         plan = make_plan(vp, r1, lam1, pred, dt, opts.tau_E)
-        res = _run_plan(route, vp, pred, plan, r1, n_plant, dt)
+        res = _run_plan(route, vp, pred, plan, n_plant, dt)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
         # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
         # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
@@ -569,8 +570,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     E_ref = vp.soc0 * E_max + jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(dE_path)[:-1]])
     plan = Plan(mode=mode, gear=gear, lam=lam_path, P_b=Pb_path, E_ref=E_ref,
                 k_E=jnp.asarray(1.0 / opts.tau_E, dtype))
-    r1 = l1.Level1Result(*([None] * len(l1.Level1Result._fields)))._replace(mode=mode, gear=gear)
-    res = _run_plan(route, vp, pred, plan, r1, plant_steps(n_steps, opts), dt)
+    res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
     # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
     s0 = path[0]
     i0, f, _ = _interp_grid(V_0, E0, dE, n_E)
