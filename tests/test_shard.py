@@ -1,0 +1,167 @@
+"""map_batch against a NumPy loop and jax.vmap; no retrace; 2 host devices in a subprocess."""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxems.shard import chunk_plan, map_batch, use_host_devices
+
+TRACES = [0]
+
+
+def item_fn(shared, item):
+    """One item: y = s A x + k, z = 3 damped sine iterations of x, n = count of x > 0."""
+    TRACES[0] += 1
+    A, s = shared
+    y = s * (A @ item["x"]) + item["k"]
+    z = jax.lax.fori_loop(0, 3, lambda i, c: 0.5 * c + jnp.sin(c), item["x"])
+    return {"y": y, "z": z, "n": jnp.sum(item["x"] > 0).astype(jnp.int32)}
+
+
+def reference(shared, items):
+    """The same with NumPy, one item at a time."""
+    A, s = (np.asarray(a) for a in shared)
+    out = {"y": [], "z": [], "n": []}
+    for x, k in zip(items["x"], items["k"], strict=True):
+        out["y"].append(s * (A @ x) + k)
+        z = x.copy()
+        for _ in range(3):
+            z = 0.5 * z + np.sin(z)
+        out["z"].append(z)
+        out["n"].append(np.sum(x > 0))
+    return {key: np.stack(v) for key, v in out.items()}
+
+
+def batch(B, seed=0):
+    rng = np.random.default_rng(seed)
+    items = {"x": rng.normal(size=(B, 3)), "k": rng.integers(-5, 5, size=B).astype(float)}
+    shared = (rng.normal(size=(3, 3)), np.float64(1.5))
+    return items, shared
+
+
+@pytest.mark.parametrize("B,chunk", [(11, 3), (7, None), (1, 4), (8, 8), (5, 1)])
+def test_map_batch_matches_loop_and_vmap(B, chunk):
+    items, shared = batch(B)
+    out = map_batch(item_fn, items, shared=shared, chunk=chunk)
+    ref = reference(shared, items)
+    vm = jax.vmap(lambda it: item_fn(shared, it))(items)
+    for key in ref:
+        assert out[key].shape[0] == B
+        np.testing.assert_allclose(np.asarray(out[key]), ref[key], rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(out[key]), np.asarray(vm[key]), rtol=1e-13,
+                                   atol=1e-13)
+    assert out["y"].dtype == jnp.float64
+
+
+def test_no_shared_and_no_retrace():
+    items, shared = batch(11, seed=1)
+
+    def fn(item):
+        return item_fn(shared, item)
+
+    out = map_batch(fn, items, chunk=4)
+    n = TRACES[0]
+    items2, _ = batch(11, seed=2)  # new values, same shapes: the cached program runs
+    out2 = map_batch(fn, items2, chunk=4)
+    assert TRACES[0] == n
+    np.testing.assert_allclose(np.asarray(out["y"]), reference(shared, items)["y"], rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(out2["y"]), reference(shared, items2)["y"],
+                               rtol=1e-12)
+    map_batch(fn, batch(12)[0], chunk=4)  # another batch size traces again (one shape more)
+    assert TRACES[0] > n
+
+
+def test_shared_values_do_not_retrace():
+    items, shared = batch(6, seed=3)
+    map_batch(item_fn, items, shared=shared, chunk=4)
+    n = TRACES[0]
+    shared2 = (shared[0] * 2.0, np.float64(-0.5))
+    out = map_batch(item_fn, items, shared=shared2, chunk=4)
+    assert TRACES[0] == n
+    np.testing.assert_allclose(np.asarray(out["y"]), reference(shared2, items)["y"], rtol=1e-12)
+
+
+@pytest.mark.parametrize("B,n,chunk", [(1, 1, 4), (11, 1, 3), (1000, 2, 64), (32, 2, 64),
+                                        (65, 2, 8), (7, 4, None)])
+def test_chunk_plan_bounds(B, n, chunk):
+    c, k = chunk_plan(B, n, chunk)
+    total = n * k * c
+    assert total >= B
+    assert total - B < n * k + n  # padding: less than one item per chunk, plus rounding
+    if chunk is not None:
+        assert 1 <= c <= chunk
+
+
+def test_bad_arguments():
+    items, shared = batch(4)
+    with pytest.raises(ValueError, match="different leading sizes"):
+        map_batch(item_fn, {"x": items["x"], "k": items["k"][:3]}, shared=shared)
+    with pytest.raises(ValueError, match="scalar"):
+        map_batch(item_fn, {"x": items["x"], "k": np.float64(1.0)}, shared=shared)
+    with pytest.raises(ValueError, match="chunk"):
+        map_batch(item_fn, items, shared=shared, chunk=0)
+    with pytest.raises(ValueError, match="devices"):
+        map_batch(item_fn, items, shared=shared, devices=len(jax.devices()) + 1)
+    with pytest.raises(ValueError, match="whole number"):
+        use_host_devices(0)
+
+
+def test_use_host_devices_after_start(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    have = len(jax.devices("cpu"))  # the backend has started
+    with pytest.raises(RuntimeError, match="already started"):
+        use_host_devices(have + 1)
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"  # unchanged
+    assert use_host_devices(have) == have  # same count: accepted, flag added for children
+    assert os.environ["XLA_FLAGS"].split() == ["--xla_cpu_enable_fast_math=false",
+                                               f"--xla_force_host_platform_device_count={have}"]
+
+
+CHILD = textwrap.dedent("""
+    import os
+    import numpy as np
+    from jaxems.shard import map_batch, use_host_devices
+    use_host_devices(2)
+    assert "--xla_force_host_platform_device_count=2" in os.environ["XLA_FLAGS"]
+    assert "--xla_cpu_enable_fast_math=false" in os.environ["XLA_FLAGS"]
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    assert len(jax.devices()) == 2, jax.devices()
+
+    def fn(shared, x):
+        z = jax.lax.fori_loop(0, 4, lambda i, c: 0.5 * c + jnp.sin(c) * shared, x)
+        return {"z": z, "s": jnp.sum(z)}
+
+    x = np.random.default_rng(0).normal(size=(13, 5))
+    ref = jax.vmap(lambda a: fn(2.0, a))(x)
+    for chunk in (3, None):
+        out = map_batch(fn, x, shared=2.0, chunk=chunk)
+        assert out["z"].shape == (13, 5), out["z"].shape
+        for k in ref:
+            np.testing.assert_allclose(np.asarray(out[k]), np.asarray(ref[k]), rtol=1e-13)
+    on_one = map_batch(fn, x, shared=2.0, chunk=3, devices=1)
+    np.testing.assert_allclose(np.asarray(on_one["z"]), np.asarray(ref["z"]), rtol=1e-13)
+    try:
+        use_host_devices(3)
+    except RuntimeError:
+        pass
+    else:
+        raise AssertionError("use_host_devices(3) after start did not raise")
+    print("OK", len(jax.devices()))
+""")
+
+
+def test_two_host_devices_subprocess():
+    env = dict(os.environ, XLA_FLAGS="--xla_cpu_enable_fast_math=false "
+               "--xla_force_host_platform_device_count=7")
+    r = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip().splitlines()[-1] == "OK 2"
