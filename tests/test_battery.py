@@ -1,9 +1,10 @@
 """Level 2 (jaxems.levels.battery): bisection, I1 battery limits, I2 guards, I3 horizon.
 
-References: a plain NumPy step loop over `mode_gear_split` (the full mode x gear table, one
-step at a time) for E_b(t_f)(lambda_b); a NumPy dynamic program over a fine E_b grid on the same
-Level 2 model (its own fuel model per mode, written from the paper's equations) for the fuel;
-hand-built cases with known minimal switching counts and a brute-force enumeration for I2b.
+References (`jaxems.reference`, plain NumPy): the gear rule and E_b(t_f)(lambda_b) from a
+brute-force search of each mode's Hamiltonian at the step's gear; a NumPy dynamic program over a
+fine E_b grid on the same Level 2 model (its own fuel model per mode, written from the paper's
+equations) for the fuel; hand-built cases with known minimal switching counts and a brute-force
+enumeration for I2b.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from jaxems import powertrain as pt
 from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
+from jaxems.reference import ref_dp, ref_end, ref_gears
 
 VP = load_vehicle()
 W1100 = 1100 * RPM
@@ -34,107 +36,6 @@ def make_route(vp, segs, T=None):
     if T is not None:
         v, g = v[:T], g[:T]
     return np.asarray(pt.road_load(vp, v, g)) * v, v
-
-
-# ------------------------------------------------------------------- references (plain NumPy)
-def ref_gears(vp, P_d, v, w):
-    gears = []
-    for k in range(len(P_d)):
-        sp = _mgs(vp, P_d[k], v[k], -2.0)
-        feas = np.asarray(sp.feasible).any(axis=0)
-        ws = np.asarray(vp.gear_ratio) * float(vp.r_d) * v[k]
-        d = np.abs(ws - w[k])
-        gears.append(int(np.argmin(np.where(feas, d, np.inf))) if feas.any()
-                     else int(np.argmin(d)))
-    return np.array(gears)
-
-
-def ref_end(vp, P_d, v, w, lam, dt, E0):
-    """E_b(t_f) at a constant lambda_b by a step loop over the full (mode, gear) table."""
-    gears = ref_gears(vp, P_d, v, w)
-    E = E0
-    for k in range(len(P_d)):
-        sp = _mgs(vp, P_d[k], v[k], lam)
-        H = np.asarray(sp.H)[:, gears[k]]
-        m = int(np.argmin(H))
-        if np.isfinite(H[m]):
-            P_b = float(np.asarray(sp.P_b)[m, gears[k]])
-            E -= (P_b + float(vp.beta) * P_b**2) * dt
-    return E
-
-
-def ref_fuel_power(vp, P_d, w, gear, P_b):
-    """Fuel power (W) of the best mode for battery power P_b (array) at gear speed w: NumPy.
-
-    Written from eqs. 1-7 and the mode definitions (engine and/or motor on the shaft, service
-    brakes absorb a surplus, slipping clutch below idle in gear 1); +inf where infeasible.
-    """
-    f = lambda x: float(np.asarray(x))  # noqa: E731
-    eta_e, eta_m = f(vp.eta_e), f(vp.eta_m)
-    slip = gear == 0 and w < f(vp.we_min)
-    we = f(vp.we_min) if slip else w
-    kf = f(vp.we_min) / w if slip else 1.0
-    pe_min, pe_max = (f(x) for x in pt.engine_power_limits(vp, we))
-    e_ok = f(vp.we_min) * (1 - 1e-9) <= we <= f(vp.we_max) and w > 0
-    e_lo, e_hi = pe_min / kf, pe_max / kf
-    pe0 = f(pt.engine_friction(vp, we))
-    m_lim = f(pt.motor_power_limit(vp, w))
-    pm0 = f(pt.motor_friction(vp, w))
-    m_ok = w <= f(vp.wm_max)
-    P_b = np.asarray(P_b, float)
-    P_m = pm0 + np.where(P_b > 0, eta_m * P_b, P_b / eta_m)
-    out = np.full(P_b.shape, np.inf)
-
-    def engine_fuel(P_out):
-        return np.maximum(kf * P_out - pe0, 0.0) / eta_e
-
-    tiny = 1e-6
-    if e_ok and m_ok:  # combined
-        ok = (np.abs(P_m) <= m_lim + tiny) & (P_d - P_m <= e_hi + tiny)
-        out = np.where(ok, np.minimum(out, engine_fuel(np.clip(P_d - P_m, e_lo, e_hi))), out)
-    zero = np.abs(P_b) < 1e-9
-    if e_ok and P_d <= e_hi:  # engine-only: P_b = 0
-        out = np.where(zero, np.minimum(out, engine_fuel(np.clip(P_d, e_lo, e_hi))), out)
-    if m_ok:  # motor-only: P_m in [max(-m_lim, P_d), m_lim], no fuel
-        ok = (P_m >= max(-m_lim, P_d) - tiny) & (P_m <= m_lim + tiny)
-        out = np.where(ok, np.minimum(out, 0.0), out)
-    if P_d <= 0:  # open driveline
-        out = np.where(zero, 0.0, out)
-    return out
-
-
-def ref_dp(vp, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=301, end_weight=6.0):
-    """Minimal fuel (J) by DP over an E_b grid of n_grid points with E_b(t_f) = E0.
-
-    Backward recursion with the cost-to-go interpolated linearly between grid points. Controls
-    per step: n_ctrl battery powers over the motor's range plus the exact points of the
-    engine-only / open (P_b = 0) and motor-only (P_m = P_d) modes; the fuel of the best mode
-    for each. The end condition is a penalty end_weight |E_b - E0| with end_weight above every
-    costate in the bracket, so missing it never pays.
-    """
-    gears = ref_gears(vp, P_d, v, w)
-    grid = np.linspace(E_min, E_max, n_grid)
-    beta, eta_m = float(vp.beta), float(vp.eta_m)
-    big = 1e15
-    V = end_weight * np.abs(grid - E0)
-    for k in range(len(P_d) - 1, -1, -1):
-        wk = float(np.asarray(pt.shaft_speeds(vp, v[k]))[gears[k]])
-        m_lim = float(pt.motor_power_limit(vp, wk))
-        pm0 = float(pt.motor_friction(vp, wk))
-        lim_b = (m_lim - pm0) / eta_m + 1.0
-        d = P_d[k] - pm0
-        exact = d / eta_m if d > 0 else d * eta_m  # motor-only with P_m = P_d
-        U = np.concatenate([np.linspace(-lim_b, lim_b, n_ctrl), [0.0, exact]])
-        c = ref_fuel_power(vp, P_d[k], wk, gears[k], U) * dt
-        if not np.isfinite(c).any():  # nothing feasible: the Level 2 model skips the step
-            c = np.where(U == 0.0, 0.0, np.inf)
-        keep = np.isfinite(c)
-        U, c = U[keep], c[keep]
-        E_next = grid[:, None] - (U + beta * U * U)[None, :] * dt
-        inside = (E_next >= E_min - 1e-9) & (E_next <= E_max + 1e-9)
-        Vn = np.interp(E_next, grid, V)
-        V = np.min(np.where(inside, c[None, :] + Vn, big), axis=1)
-    return float(np.interp(E0, grid, V))
 
 
 # -------------------------------------------------------------------------------- kernels

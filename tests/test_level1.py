@@ -12,6 +12,7 @@ from jaxems import switching as sw
 from jaxems.levels import level1 as l1
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
+from jaxems.reference import numpy_viterbi
 
 VP = load_vehicle()
 PRM = sw.SwitchCostParams()
@@ -80,14 +81,6 @@ def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts
 
 
 # ----------------------------------------------------------------------- full horizon DP
-def numpy_viterbi(stage, Cs, init):
-    """Plain loop: stage (T, S), Cs (T, S, S), init (S,) -> optimal cost."""
-    V = init.copy()
-    for k in range(stage.shape[0]):
-        V = np.min(V[:, None] + Cs[k], axis=0) + stage[k]
-    return V.min()
-
-
 _cost_mats = jax.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None)))
 _htab = jax.jit(ps.hamiltonian_table)
 _tcost = jax.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None)))

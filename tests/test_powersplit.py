@@ -9,68 +9,11 @@ from hypothesis import strategies as st
 
 from jaxems.levels import powersplit as ps
 from jaxems.params import RPM, load_vehicle
+from jaxems.reference import ref_split
 
 VP = load_vehicle()
 CONV = VP.conventional()
 split_j = jax.jit(ps.mode_gear_split)
-N_GRID = 100_001
-
-
-def ref_split(vp, P_d, v, lam, n=N_GRID):
-    """Brute force: for every (mode, gear) the minimum of H over a P_b grid spanning exactly
-    the feasible interval (plain NumPy, written from the paper's eqs. 1-7, 10-12)."""
-    f = {k: np.asarray(x, dtype=np.float64) for k, x in vp._asdict().items()}
-    n_g = f["gear_ratio"].shape[0]
-    H = np.full((4, n_g), np.inf)
-    Pb = np.zeros((4, n_g))
-    spacing = np.zeros((4, n_g))
-    for g in range(n_g):
-        w = f["gear_ratio"][g] * f["r_d"] * v
-        for mode, (ce, cm) in enumerate(zip(ps.ENGINE_CONNECTED, ps.MOTOR_CONNECTED, strict=True)):
-            if cm and f["has_motor"] < 0.5:
-                continue
-            we, k = w, 1.0
-            if ce and g == 0 and w < f["we_min"]:  # launch: slipping clutch at idle speed
-                we, k = f["we_min"], f["we_min"] / w if w > 0 else 0.0
-            if ce and not (f["we_min"] * (1 - 1e-9) <= we <= f["we_max"] and w > 0):
-                continue
-            if cm and w > f["wm_max"]:
-                continue
-            if ce:
-                pe_hi = np.interp(we, f["te_max_w"], f["te_max"]) * we / k
-                pe_lo = np.interp(we, f["te_min_w"], f["te_min"]) * we / k
-                if k != 1.0:  # a slipping clutch cannot brake
-                    pe_lo = 0.0
-                pe0 = -(f["e0_lin"] * we + f["e0_quad"] * we * we)
-            else:
-                pe_hi = pe_lo = pe0 = 0.0
-            m_lim = min(f["tm_max"] * w, f["pm_max"]) if cm else 0.0
-            pm0 = -(f["m0_lin"] * w + f["m0_quad"] * w * w) if cm else 0.0
-
-            def pb_of(P_m, pm0=pm0):
-                d = P_m - pm0
-                return d / f["eta_m"] if d > 0 else d * f["eta_m"]
-
-            pm_lo = max(-m_lim, P_d - pe_hi)  # the engine (or nothing) covers the rest
-            if pm_lo > m_lim:
-                continue
-            if cm:
-                grid = np.linspace(pb_of(pm_lo), pb_of(m_lim), n)
-                P_m = pm0 + np.where(grid > 0, f["eta_m"] * grid, grid / f["eta_m"])
-            else:
-                grid = np.zeros(1)
-                P_m = np.zeros(1)
-            out = np.clip(P_d - P_m, pe_lo, pe_hi)  # brakes take what the engine cannot
-            # declutched, a conventional truck's engine idles (a hybrid's is stopped)
-            idle = (f["e0_lin"] * f["we_min"] + f["e0_quad"] * f["we_min"] ** 2) / f["eta_e"]
-            fuel = np.maximum(k * out - pe0, 0.0) / f["eta_e"] if ce else (
-                idle if f["has_motor"] < 0.5 else 0.0)
-            Hg = fuel - lam * (grid + f["beta"] * grid * grid)
-            i = int(np.argmin(Hg))
-            H[mode, g], Pb[mode, g] = Hg[i], grid[i]
-            spacing[mode, g] = grid[1] - grid[0] if grid.size > 1 else 0.0
-    return H, Pb, spacing
-
 
 def _check(vp, P_d, v, lam):
     s = split_j(vp, P_d, v, lam)

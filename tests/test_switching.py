@@ -1,6 +1,6 @@
 """Switching costs of Appendix C: Table A1 (synchronisation), Table A2 (traction interruption),
-the dense cost matrix against a per-pair NumPy reference, and the open-driveline event against
-a time-stepped simulation."""
+the dense cost matrix against the NumPy reference (`jaxems.reference`), and the open-driveline
+event against a time-stepped simulation."""
 
 import jax
 import numpy as np
@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from jaxems import switching as sw
 from jaxems.levels import powersplit as ps
 from jaxems.params import RPM, load_vehicle
+from jaxems.reference import ref_cost_matrix
 
 VP = load_vehicle()
 PRM = sw.SwitchCostParams()
@@ -96,30 +97,6 @@ def test_traction_saturated_and_downhill_use_kinetic_energy():
     v1 = v0 + 10000.0 / m
     assert float(down.cost) == pytest.approx(-PRM.lambda_k * 0.5 * m * (v1**2 - v0**2))
     assert float(sw.traction_loss(vp, 0.0, v0, 1.0, 3e4, PRM).cost) == 0.0
-
-
-def ref_cost_matrix(vp, v, grade, lam, prm):
-    """Per-pair loop: per-component synchronisation (A17-A19) + one traction event."""
-    f = {k: np.asarray(x, dtype=np.float64) for k, x in vp._asdict().items()}
-    n_g = f["gear_ratio"].shape[0]
-    S = 4 * n_g
-    w = f["gear_ratio"] * f["r_d"] * v
-    trac = np.asarray(sw.traction_cost_table(vp, v, grade, prm))
-    a = float(prm.averaged)
-    C = np.zeros((S, S))
-    for s in range(S):
-        for t in range(S):
-            if s == t:
-                continue
-            m0, g0, m1, g1 = s // n_g, s % n_g, t // n_g, t % n_g
-            E = 0.0
-            for inertia, flags in ((f["I_e"], ps.ENGINE_CONNECTED), (f["I_m"], ps.MOTOR_CONNECTED)):
-                U0 = 0.5 * inertia * flags[m0] * w[g0] ** 2
-                U1 = 0.5 * inertia * flags[m1] * w[g1] ** 2
-                E += (1 - a) * max(U1 - U0, 0.0) + a * 0.5 * abs(U1 - U0)
-            row = 2 if (m0 != m1 and g0 != g1) else (0 if m0 != m1 else 1)
-            C[s, t] = float(prm.weight) * (-lam * E + trac[row, t])
-    return C
 
 
 @settings(max_examples=10)

@@ -18,6 +18,8 @@ from jaxems.levels.velocity import (
     velocity_profile,
 )
 from jaxems.params import KMH, RPM, load_vehicle
+from jaxems.reference import ref_pieces, ref_profile, ref_time_grid
+from jaxems.reference import road_load as np_road_load
 from jaxems.route import Row, n_nodes, node_positions, pad_routes, route_from_rows
 
 VP = load_vehicle()
@@ -40,96 +42,6 @@ MIXED = make(
     (2700, 80, -4, 0),
     (3400, 0, 0, 7),
 )
-
-
-# ------------------------------------------------------------------------ NumPy references
-def np_road_load(vp, v, g):
-    a = np.arctan(g)
-    return 0.5 * float(vp.c_w * vp.area * vp.rho) * v * v + float(vp.mass * vp.g) * (
-        float(vp.c_r) * np.cos(a) + np.sin(a)
-    )
-
-
-def np_a_fwd(vp, v, g, w):
-    p_max = np.interp(w, np.asarray(vp.te_max_w), np.asarray(vp.te_max)) * w
-    f_max = min(p_max / max(v, 1e-6), float(np.max(vp.te_max) * vp.gear_ratio[0] * vp.r_d))
-    return min(float(vp.a_max), (f_max - np_road_load(vp, v, g)) / float(vp.mass))
-
-
-def ref_profile(route, vp, w=None):
-    """Plain loops of section 6: forward at full traction, backward at a_min, the minimum."""
-    n = n_nodes(route)
-    ds = float(route.ds)
-    w = np.full(n, float(vp.w_pred)) if w is None else np.broadcast_to(w, (n,))
-    stop = np.asarray(route.stop)[:n]
-    lim = np.minimum(np.asarray(route.vmax)[:n], float(vp.v_cruise))
-    lim[stop > 0] = 0.0
-    floor = np.where(stop > 0, 0.0, np.minimum(V_CRAWL, lim))
-    g = np.asarray(route.grade)[:n]
-    vf = np.zeros(n)
-    vf[0] = lim[0]
-    stalled = False
-    for i in range(n - 1):
-        a1 = np_a_fwd(vp, vf[i], g[i], w[i])
-        vp_ = math.sqrt(max(vf[i] ** 2 + 2 * a1 * ds, 0.0))
-        a = min(a1, np_a_fwd(vp, vp_, g[i], w[i]))
-        v2 = vf[i] ** 2 + 2 * a * ds
-        if a < 0 and v2 < floor[i + 1] ** 2:
-            stalled = True
-        vf[i + 1] = max(min(lim[i + 1], math.sqrt(max(v2, 0.0))), floor[i + 1])
-    vb = np.zeros(n)
-    vb[-1] = lim[-1]
-    for i in range(n - 2, -1, -1):
-        vb[i] = min(lim[i], math.sqrt(vb[i + 1] ** 2 + 2 * float(vp.a_min) * ds))
-    return np.minimum(vf, vb), vf, vb, not stalled
-
-
-def ref_pieces(route, v):
-    """Motion as pieces (t0, t1, s0, v0, a, grade): standing at stops, constant acceleration
-    over each cell (uniform motion at V_CRAWL / 2 when both ends stand still)."""
-    n = n_nodes(route)
-    ds = float(route.ds)
-    stop = np.asarray(route.stop)
-    g = np.asarray(route.grade)
-    pieces, t = [], 0.0
-    for i in range(n):
-        if stop[i] > 0:
-            pieces.append((t, t + stop[i], i * ds, 0.0, 0.0, g[i]))
-            t += stop[i]
-        if i < n - 1:
-            if v[i] + v[i + 1] >= V_CRAWL:
-                dtc = 2 * ds / (v[i] + v[i + 1])
-                pieces.append((t, t + dtc, i * ds, v[i], (v[i + 1] - v[i]) / dtc, g[i]))
-            else:
-                dtc = 2 * ds / V_CRAWL
-                pieces.append((t, t + dtc, i * ds, ds / dtc, 0.0, g[i]))
-            t += dtc
-    return pieces, t
-
-
-def ref_time_grid(route, vp, v, dt, T):
-    """Per step: distance, mean power int (m a + F_0(v)) v dt / dt by exact Gauss quadrature
-    over the pieces (the integrand is a cubic in t), the speed at t_k."""
-    pieces, trip = ref_pieces(route, v)
-    t0s = np.array([p[0] for p in pieces])
-    xg, wg = np.polynomial.legendre.leggauss(3)
-    m = float(vp.mass)
-    dist, P, v_at = np.zeros(T), np.zeros(T), np.zeros(T)
-    for k in range(T):
-        ta, tb = k * dt, min((k + 1) * dt, trip)
-        j = max(int(np.searchsorted(t0s, ta, side="right")) - 1, 0)
-        p = pieces[j]
-        v_at[k] = p[3] + p[4] * min(max(ta - p[0], 0.0), p[1] - p[0]) if ta < trip else 0.0
-        while j < len(pieces) and pieces[j][0] < tb:
-            t0, t1, s0, v0, a, g = pieces[j]
-            lo, hi = max(t0, ta), min(t1, tb)
-            if hi > lo:
-                tau = 0.5 * (hi - lo) * xg + 0.5 * (hi + lo) - t0
-                vv = v0 + a * tau
-                dist[k] += 0.5 * (hi - lo) * np.sum(wg * vv)
-                P[k] += 0.5 * (hi - lo) * np.sum(wg * (m * a + np_road_load(vp, vv, g)) * vv)
-            j += 1
-    return dist, P / dt, v_at, trip
 
 
 # ------------------------------------------------------------------------------ references

@@ -1,0 +1,874 @@
+"""Plain NumPy references of the jaxems kernels: what the tests compare the kernels with.
+
+This module is NOT for production. It restates each level in float64 NumPy, written from the
+paper's equations with Python loops and brute force where that keeps it obviously right, so
+that the JAX kernels (`jaxems.levels`, `jaxems.switching`, `jaxems.dp`) can be checked against
+something independent of their algorithms. It is also the baseline of
+``benchmarks/bench_reference.py`` (speed-up of the jitted, vmapped kernels over this code).
+
+Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears states):
+
+- Level 3 (section 6): `ref_profile` (forward and backward passes over the distance grid, a
+  loop per node), `ref_pieces` (the motion as standing / constant-acceleration pieces),
+  `ref_time_grid` (per time step: distance, mean power by Gauss quadrature over the pieces,
+  speed at t_k) and `ref_prediction` (the whole time grid: v, P_d, grade, mask, ...).
+- Level 1 split (section 4): `ref_split` minimises H = P_f - lambda_b P_bi over a uniform grid
+  of battery powers spanning exactly each (mode, gear)'s feasible interval (one step);
+  `split_table` does the same over many steps on a grid refined around its minimum (H is
+  convex in P_b for lambda_b < 0, so the minimum of a grid lies within one spacing of the true
+  one): `n_grid` points, `levels` refinements, each shrinking the spacing by (n_grid - 1) / 2,
+  plus the exact points P_b = 0 and the interval ends. With the defaults (33 points, 12
+  levels) the final spacing is below 1e-9 W. This is a brute-force search, not the kernel's
+  analytic candidate search.
+- Switching costs (Appendix C): `ref_traction_table` (traction interruption per target state)
+  and `ref_cost_matrix` (synchronisation per component + one traction event per switch).
+- Dynamic programming: `viterbi_path` (plain loop over steps, back-pointers; ties: stay,
+  then the lowest source state; final state: the lowest index among the minima) and
+  `numpy_viterbi` (its cost).
+- Level 2 (section 5): `ref_gears` (the gear rule of `battery.select_gears`), `ref_steps`
+  (the best mode at the step's gear for a costate), `ref_end` (E_b(t_f) for a constant
+  costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
+  `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
+- `reference_plan`: iteration 0 of the multilevel strategy's planning pipeline, the same stages
+  as `kernel_plan` (which runs them through the JAX kernels): Level 3 prediction -> Level 2
+  costate by bisection (charge sustaining, no battery limits, gears from the constant engine
+  speed w_pred) -> Level 1 Hamiltonian table over mode x gear per step + Viterbi with switching
+  costs. The strategy itself adds what this pipeline leaves out (battery limits by I1 pieces,
+  Level 2's I2b sides at guards, the charge-sustaining shift of Level 1's costate, the plant).
+
+Conventions follow the kernels: mode indices 0 M_c, 1 M_e, 2 M_m, 3 M_o; gear index 0 is gear
+1; state s = mode * n_gears + gear; SI units; lambda_b < 0.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from types import SimpleNamespace
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from .levels.powersplit import ENGINE_CONNECTED, MO, MOTOR_CONNECTED, N_MODES
+from .levels.velocity import V_CRAWL, steps_for
+from .params import VehicleParams
+from .route import Route, n_nodes
+from .switching import STRANDED_J, SwitchCostParams
+
+LAM_BRACKET = (-6.0, -0.3)  # the bisection bracket of `battery.LAM_BRACKET`
+
+
+# ----------------------------------------------------------------------------- components
+def _veh(vp: VehicleParams) -> SimpleNamespace:
+    """The vehicle as float64: scalars as Python floats, curves as arrays."""
+    out = {}
+    for k, x in vp._asdict().items():
+        a = np.asarray(x, dtype=np.float64)
+        out[k] = float(a) if a.ndim == 0 else a
+    return SimpleNamespace(**out)
+
+
+def road_load(vp, v, grade):
+    """F_0 (N) = air drag + rolling resistance + grade force, positive when resisting (eq. 14)."""
+    f = vp if isinstance(vp, SimpleNamespace) else _veh(vp)
+    a = np.arctan(grade)
+    return 0.5 * f.c_w * f.area * f.rho * v * v + f.mass * f.g * (f.c_r * np.cos(a) + np.sin(a))
+
+
+def _engine_friction(f, w):
+    return -(f.e0_lin * w + f.e0_quad * w * w)
+
+
+def _engine_limits(f, w):
+    return np.interp(w, f.te_min_w, f.te_min) * w, np.interp(w, f.te_max_w, f.te_max) * w
+
+
+def _motor_friction(f, w):
+    return -(f.m0_lin * w + f.m0_quad * w * w)
+
+
+def _motor_limit(f, w):
+    return np.minimum(f.tm_max * w, f.pm_max) * f.has_motor
+
+
+# ------------------------------------------------------------------------------- Level 3
+def a_fwd(vp, v, grade, w):
+    """Forward-pass acceleration (m/s^2): min(a_max, (F_max(v) - F_0) / m), F_max of the
+    engine alone at speed w behind a CVT, capped by the peak torque in gear 1 (scalars)."""
+    f = vp if isinstance(vp, SimpleNamespace) else _veh(vp)
+    p_max = np.interp(w, f.te_max_w, f.te_max) * w
+    f_max = min(p_max / max(v, 1e-6), float(np.max(f.te_max) * f.gear_ratio[0] * f.r_d))
+    return min(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
+
+
+def ref_profile(route: Route, vp: VehicleParams, w=None):
+    """Plain loops of section 6: forward at full traction, backward at a_min, the minimum.
+
+    Returns (v, v_fwd, v_bwd, feasible): (n,) node speeds (m/s) over the n valid nodes and
+    whether the forward pass never stalled below the crawl floor away from a stop.
+    """
+    f = _veh(vp)
+    n = n_nodes(route)
+    ds = float(route.ds)
+    w = np.full(n, f.w_pred) if w is None else np.broadcast_to(w, (n,))
+    stop = np.asarray(route.stop)[:n]
+    lim = np.minimum(np.asarray(route.vmax, dtype=np.float64)[:n], f.v_cruise)
+    lim[stop > 0] = 0.0
+    floor = np.where(stop > 0, 0.0, np.minimum(V_CRAWL, lim))
+    g = np.asarray(route.grade)[:n]
+    vf = np.zeros(n)
+    vf[0] = lim[0]
+    stalled = False
+    for i in range(n - 1):
+        a1 = a_fwd(f, vf[i], g[i], w[i])
+        vp_ = math.sqrt(max(vf[i] ** 2 + 2 * a1 * ds, 0.0))
+        a = min(a1, a_fwd(f, vp_, g[i], w[i]))
+        v2 = vf[i] ** 2 + 2 * a * ds
+        if a < 0 and v2 < floor[i + 1] ** 2:
+            stalled = True
+        vf[i + 1] = max(min(lim[i + 1], math.sqrt(max(v2, 0.0))), floor[i + 1])
+    vb = np.zeros(n)
+    vb[-1] = lim[-1]
+    for i in range(n - 2, -1, -1):
+        vb[i] = min(lim[i], math.sqrt(vb[i + 1] ** 2 + 2 * f.a_min * ds))
+    return np.minimum(vf, vb), vf, vb, not stalled
+
+
+def ref_pieces(route: Route, v):
+    """Motion as pieces (t0, t1, s0, v0, a, grade): standing at stops, constant acceleration
+    over each cell (uniform motion at V_CRAWL / 2 when both ends stand still).
+
+    A cell's piece carries the cell's gradient; a stop's piece the gradient of the cell the
+    truck arrived by (the first cell at the start), the convention of `velocity.resample` for
+    standing steps. Returns (pieces, trip time (s)).
+    """
+    n = n_nodes(route)
+    ds = float(route.ds)
+    stop = np.asarray(route.stop)
+    g = np.asarray(route.grade)
+    pieces, t = [], 0.0
+    for i in range(n):
+        if stop[i] > 0:
+            pieces.append((t, t + stop[i], i * ds, 0.0, 0.0, g[max(i - 1, 0)]))
+            t += stop[i]
+        if i < n - 1:
+            if v[i] + v[i + 1] >= V_CRAWL:
+                dtc = 2 * ds / (v[i] + v[i + 1])
+                pieces.append((t, t + dtc, i * ds, v[i], (v[i + 1] - v[i]) / dtc, g[i]))
+            else:
+                dtc = 2 * ds / V_CRAWL
+                pieces.append((t, t + dtc, i * ds, ds / dtc, 0.0, g[i]))
+            t += dtc
+    return pieces, t
+
+
+def _time_grid(route, vp, v, dt, T):
+    """Per step: distance, mean power, speed at t_k, rise and the gradient at t_k; trip time."""
+    f = _veh(vp)
+    pieces, trip = ref_pieces(route, v)
+    t0s = np.array([p[0] for p in pieces])
+    xg, wg = np.polynomial.legendre.leggauss(3)
+    dist, P, v_at = np.zeros(T), np.zeros(T), np.zeros(T)
+    rise, g_at = np.zeros(T), np.zeros(T)
+    for k in range(T):
+        ta, tb = k * dt, min((k + 1) * dt, trip)
+        j = max(int(np.searchsorted(t0s, ta, side="right")) - 1, 0)
+        p = pieces[j]
+        v_at[k] = p[3] + p[4] * min(max(ta - p[0], 0.0), p[1] - p[0]) if ta < trip else 0.0
+        g_at[k] = p[5]
+        while j < len(pieces) and pieces[j][0] < tb:
+            t0, t1, s0, v0, a, g = pieces[j]
+            lo, hi = max(t0, ta), min(t1, tb)
+            if hi > lo:
+                tau = 0.5 * (hi - lo) * xg + 0.5 * (hi + lo) - t0
+                vv = v0 + a * tau
+                d = 0.5 * (hi - lo) * np.sum(wg * vv)
+                dist[k] += d
+                rise[k] += g * d
+                P[k] += 0.5 * (hi - lo) * np.sum(wg * (f.mass * a + road_load(f, vv, g)) * vv)
+            j += 1
+    return dist, P / dt, v_at, rise, g_at, trip
+
+
+def ref_time_grid(route: Route, vp: VehicleParams, v, dt, T):
+    """Per step: distance, mean power int (m a + F_0(v)) v dt / dt by exact Gauss quadrature
+    over the pieces (the integrand is a cubic in t), the speed at t_k.
+
+    v: (n,) node speeds (`ref_profile`); returns (dist (T,) m, P (T,) W, v_at (T,) m/s, trip s).
+    """
+    dist, P, v_at, _, _, trip = _time_grid(route, vp, v, dt, T)
+    return dist, P, v_at, trip
+
+
+class RefPrediction(NamedTuple):
+    """Level 3 on the time grid (NumPy); shapes (T,) unless noted.
+
+    v: mean speed over the step (m/s); P_d: mean driveline power (W); grade: mean gradient
+    over the step (the gradient at t_k while standing); v_ref: speed at t_k; s: position at
+    t_k (m); mask: t_k < trip time; trip_time: () s; feasible: () bool; v_nodes: (n,) node
+    speeds; dt: () s.
+    """
+
+    v: np.ndarray
+    P_d: np.ndarray
+    grade: np.ndarray
+    v_ref: np.ndarray
+    s: np.ndarray
+    mask: np.ndarray
+    trip_time: float
+    feasible: bool
+    v_nodes: np.ndarray
+    dt: float
+
+
+def ref_prediction(route: Route, vp: VehicleParams, dt: float = 1.0, n_steps: int | None = None,
+                   w=None) -> RefPrediction:
+    """Level 3 (section 6) on the uniform time grid, as `velocity.predict_velocity` defines it.
+
+    n_steps: number of steps (default `velocity.steps_for` of the trip); w: () or (n,) engine
+    speed (rad/s) of the forward pass (default vp.w_pred). Standing and masked steps have
+    v = P_d = 0.
+    """
+    v_n, _, _, ok = ref_profile(route, vp, w)
+    _, trip = ref_pieces(route, v_n)
+    T = steps_for(trip, dt) if n_steps is None else int(n_steps)
+    dist, P, v_at, rise, g_at, trip = _time_grid(route, vp, v_n, dt, T)
+    mask = np.arange(T) * dt < trip
+    moving = dist > 1e-9 * float(route.ds)
+    grade = np.where(moving, rise / np.where(moving, dist, 1.0), g_at)
+    z = np.zeros(T)
+    return RefPrediction(
+        v=np.where(mask, dist / dt, z), P_d=np.where(mask & moving, P, z),
+        grade=np.where(mask, grade, z), v_ref=np.where(mask, v_at, z),
+        s=np.concatenate([[0.0], np.cumsum(dist)[:-1]]), mask=mask, trip_time=trip,
+        feasible=bool(ok), v_nodes=v_n, dt=float(dt),
+    )
+
+
+# ------------------------------------------------------------------------ Level 1 split
+class _Ranges(NamedTuple):
+    """What one mode can do at gearbox speed w (arrays of one broadcast shape)."""
+
+    ok: np.ndarray  # the state can run and meets the demand
+    cm: bool  # motor connected (and present)
+    ce: bool  # engine connected
+    k: np.ndarray  # slip factor (crank power per output power)
+    pe_lo: np.ndarray  # engine output range at the clutch (W)
+    pe_hi: np.ndarray
+    pe0: np.ndarray  # engine friction at the crank (W, <= 0)
+    pm0: np.ndarray  # motor friction (W, <= 0)
+    pb_lo: np.ndarray  # feasible battery power interval (W)
+    pb_hi: np.ndarray
+    idle: float  # fuel power (W) of a declutched idling engine (conventional truck)
+
+
+def _pb_of_pm(f, pm0, P_m):
+    d = P_m - pm0
+    return np.where(d > 0, d / f.eta_m, d * f.eta_m)
+
+
+def _ranges(f, mode: int, P_d, w, launch) -> _Ranges:
+    """Ranges of `mode` (index) at demand P_d (W) and gearbox speed w (rad/s), written from
+    eqs. 1-7, 10-12: a connected engine needs w in [we_min, we_max] (in gear 1 below idle it
+    runs at we_min with a slipping clutch that cannot brake: crank power = k * output, k =
+    we_min / w), a connected motor w <= wm_max; the motor (or nothing) covers P_d minus at most
+    the engine's full load, service brakes take any surplus."""
+    ce, needs_motor = ENGINE_CONNECTED[mode], MOTOR_CONNECTED[mode]
+    cm = needs_motor and f.has_motor >= 0.5
+    P_d, w, launch = np.broadcast_arrays(np.asarray(P_d, float), np.asarray(w, float), launch)
+    zero = np.zeros(P_d.shape)
+    ok = np.ones(P_d.shape, bool) if (cm or not needs_motor) else np.zeros(P_d.shape, bool)
+    if ce:
+        slip = launch & (w < f.we_min)
+        we = np.where(slip, f.we_min, w)
+        k = np.where(slip, f.we_min / np.where(w > 0, w, 1.0), 1.0)
+        ok &= (we >= f.we_min * (1 - 1e-9)) & (we <= f.we_max) & (w > 0)
+        t_lo, t_hi = _engine_limits(f, we)
+        pe_hi = t_hi / k
+        pe_lo = np.where(slip, 0.0, t_lo / k)
+        pe0 = _engine_friction(f, we)
+    else:
+        k, pe_lo, pe_hi, pe0 = np.ones(P_d.shape), zero, zero, zero
+    if cm:
+        ok &= w <= f.wm_max
+        m_lim = np.minimum(f.tm_max * w, f.pm_max)
+        pm0 = _motor_friction(f, w)
+    else:
+        m_lim, pm0 = zero, zero
+    pm_lo = np.maximum(-m_lim, P_d - pe_hi)
+    ok &= pm_lo <= m_lim
+    if cm:
+        pb_lo, pb_hi = _pb_of_pm(f, pm0, pm_lo), _pb_of_pm(f, pm0, m_lim)
+    else:
+        pb_lo, pb_hi = zero, zero
+    idle = -_engine_friction(f, f.we_min) / f.eta_e if f.has_motor < 0.5 else 0.0
+    return _Ranges(ok, cm, ce, k, pe_lo, pe_hi, pe0, pm0, pb_lo, pb_hi, idle)
+
+
+def _evaluate(f, r: _Ranges, P_d, lam, P_b):
+    """H, P_f, P_m at battery powers P_b (broadcast against r's shape + trailing axes)."""
+    if r.cm:
+        P_m = r.pm0 + np.where(P_b > 0, f.eta_m * P_b, P_b / f.eta_m)
+    else:
+        P_m = np.zeros(np.shape(P_b))
+    if r.ce:
+        out = np.clip(P_d - P_m, r.pe_lo, r.pe_hi)  # the brakes take what the engine cannot
+        P_f = np.maximum(r.k * out - r.pe0, 0.0) / f.eta_e
+    else:
+        P_f = np.full(np.shape(P_m), r.idle)
+    return P_f - lam * (P_b + f.beta * P_b * P_b), P_f, P_m
+
+
+def ref_split(vp: VehicleParams, P_d, v, lam, n: int = 100_001):
+    """Brute force: for every (mode, gear) the minimum of H over a P_b grid of n points spanning
+    exactly the feasible interval (one time step; P_d W, v m/s, lam scalars).
+
+    Returns (H, P_b, spacing), each (4, n_gears): +inf / 0 / 0 where infeasible; spacing is the
+    grid step (0 for modes without the motor, whose P_b is 0).
+    """
+    f = _veh(vp)
+    w = f.gear_ratio * f.r_d * v
+    launch = np.arange(w.shape[0]) == 0
+    G = w.shape[0]
+    H, Pb, spacing = np.full((4, G), np.inf), np.zeros((4, G)), np.zeros((4, G))
+    for mode in range(N_MODES):
+        r = _ranges(f, mode, P_d, w, launch)
+        if r.cm:
+            grid = np.linspace(r.pb_lo, r.pb_hi, n, axis=-1)  # (G, n)
+        else:
+            grid = np.zeros((G, 1))
+        Hg, _, _ = _evaluate(f, r._replace(**{k: getattr(r, k)[:, None] for k in (
+            "k", "pe_lo", "pe_hi", "pe0", "pm0")}), P_d, lam, grid)
+        i = np.argmin(Hg, axis=-1)
+        rows = np.arange(G)
+        H[mode] = np.where(r.ok, Hg[rows, i], np.inf)
+        Pb[mode] = np.where(r.ok, grid[rows, i], 0.0)
+        if r.cm:
+            spacing[mode] = np.where(r.ok, grid[:, 1] - grid[:, 0], 0.0)
+    return H, Pb, spacing
+
+
+class RefSplit(NamedTuple):
+    """The optimal split of every (mode, gear) per step: arrays (T, 4, n_gears) (or the shape
+    the inputs broadcast to, with the mode axis where noted). H: W, +inf where infeasible;
+    P_b, P_f, P_m: W (0 where infeasible); feasible: bool."""
+
+    H: np.ndarray
+    P_b: np.ndarray
+    P_f: np.ndarray
+    P_m: np.ndarray
+    feasible: np.ndarray
+
+
+def _refined_min(f, r: _Ranges, P_d, lam, n_grid, levels):
+    """Minimise H over [pb_lo, pb_hi] by a grid refined around its minimum (H convex)."""
+    ex = lambda a: np.asarray(a)[..., None]  # noqa: E731
+    rr = r._replace(**{k: ex(getattr(r, k)) for k in ("k", "pe_lo", "pe_hi", "pe0", "pm0")})
+    P_d_, lam_ = ex(P_d), ex(lam)
+    lo = np.where(r.ok, r.pb_lo, 0.0)
+    hi = np.where(r.ok, r.pb_hi, 0.0)
+    # the exact points first: interval ends and P_b = 0 (engine-only / open-like splits)
+    pts = np.stack([lo, hi, np.clip(0.0, lo, hi)], axis=-1)
+    h = _evaluate(f, rr, P_d_, lam_, pts)[0]
+    i = np.argmin(h, axis=-1)[..., None]
+    best_x = np.take_along_axis(pts, i, -1)[..., 0]
+    best_h = np.take_along_axis(h, i, -1)[..., 0]
+    a, b = lo, hi
+    u = np.linspace(0.0, 1.0, n_grid)
+    for _ in range(levels):
+        x = a[..., None] + (b - a)[..., None] * u
+        x[..., -1] = b
+        h = _evaluate(f, rr, P_d_, lam_, x)[0]
+        i = np.argmin(h, axis=-1)
+        hx = np.take_along_axis(h, i[..., None], -1)[..., 0]
+        better = hx < best_h
+        best_h = np.where(better, hx, best_h)
+        best_x = np.where(better, np.take_along_axis(x, i[..., None], -1)[..., 0], best_x)
+        # convexity: the minimum lies between the grid neighbours of the grid's minimum
+        a = np.take_along_axis(x, np.maximum(i - 1, 0)[..., None], -1)[..., 0]
+        b = np.take_along_axis(x, np.minimum(i + 1, n_grid - 1)[..., None], -1)[..., 0]
+    return best_x
+
+
+def _solve_mode(f, r: _Ranges, P_d, lam, n_grid, levels):
+    """(H, P_b, P_f, P_m) of one mode at its optimum; +inf / 0 where infeasible."""
+    if r.cm:
+        P_b = _refined_min(f, r, P_d, lam, n_grid, levels)
+    else:
+        P_b = np.zeros(r.ok.shape)
+    H, P_f, P_m = _evaluate(f, r, P_d, lam, P_b)
+    z = lambda a: np.where(r.ok, a, 0.0)  # noqa: E731
+    return np.where(r.ok, H, np.inf), z(P_b), z(P_f), z(P_m)
+
+
+def split_table(vp: VehicleParams, P_d, v, lam, n_grid: int = 33, levels: int = 12) -> RefSplit:
+    """The optimal split of every (mode, gear) per step by refined brute force (see module).
+
+    P_d, v: (T,) W and m/s; lam: () or (T,). Returns `RefSplit` of shape (T, 4, n_gears).
+    """
+    f = _veh(vp)
+    P_d = np.asarray(P_d, float)
+    v = np.asarray(v, float)
+    lam = np.broadcast_to(np.asarray(lam, float), P_d.shape)
+    w = v[:, None] * (f.gear_ratio * f.r_d)[None]  # (T, G)
+    launch = (np.arange(w.shape[1]) == 0)[None]
+    out = [[], [], [], [], []]
+    for mode in range(N_MODES):
+        r = _ranges(f, mode, P_d[:, None], w, launch)
+        H, P_b, P_f, P_m = _solve_mode(f, r, P_d[:, None], lam[:, None], n_grid, levels)
+        for lst, a in zip(out, (H, P_b, P_f, P_m, r.ok), strict=True):
+            lst.append(a)
+    return RefSplit(*(np.stack(x, axis=1) for x in out))
+
+
+# ----------------------------------------------------------------------- switching costs
+def ref_traction_table(vp: VehicleParams, v, grade, prm: SwitchCostParams):
+    """Traction-interruption cost (J) of switching into each state: (3, S), eqs. A20-A22.
+
+    Rows: mode switch only (open for dt_M), gear switch only (dt_G), both (one event of
+    max(dt_M, dt_G)). During the open driveline the truck decelerates at F_0 / m, then recovers
+    at the largest driveline force of the target state; the time lost is priced at lambda_t.
+    When that force cannot beat the road load, or downhill, the kinetic energy change is priced
+    at lambda_k. A switch into the open mode costs nothing; a state whose engine would run below
+    idle at the speed left after the event (gears above 1) costs `STRANDED_J`.
+    """
+    f = _veh(vp)
+    v = float(v)
+    F0 = float(road_load(f, v, grade))
+    w = f.gear_ratio * f.r_d * v  # (G,)
+    e_ok = (w >= f.we_min * (1 - 1e-9)) & (w <= f.we_max)
+    pe = np.where(e_ok, np.interp(w, f.te_max_w, f.te_max) * w, 0.0)
+    pm = np.where(w <= f.wm_max, _motor_limit(f, w), 0.0)
+    ce = np.array(ENGINE_CONNECTED, float)[:, None]
+    cm = np.array(MOTOR_CONNECTED, float)[:, None]
+    F_max = (ce * pe + cm * pm) / max(v, float(prm.v_min))  # (4, G)
+    m = f.mass
+    lt, lk = float(prm.lambda_t), float(prm.lambda_k)
+    out = np.zeros((3, N_MODES, w.shape[0]))
+    for row, tau in enumerate((f.dt_M, f.dt_G, max(f.dt_M, f.dt_G))):
+        v0 = max(v, float(prm.v_min))
+        a0 = -F0 / m
+        v1 = max(v0 + a0 * tau, 0.0)
+        t_open = min(tau, v0 / max(-a0, 1e-30)) if a0 < 0 else tau
+        s1 = v0 * t_open + 0.5 * a0 * t_open**2
+        decel = (F0 > 0) & (F0 < F_max)
+        a2 = np.where(decel, (F_max - F0) / m, 1.0)
+        t_r = np.where(decel, (v0 - v1) / a2, 0.0)
+        s2 = s1 + v1 * t_r + 0.5 * a2 * t_r * t_r
+        dt_t = np.where(decel, s2 / v0 - (tau + t_r), 0.0)  # time lost, <= 0 (A20)
+        c_kin = -lk * 0.5 * m * abs(v1 * v1 - v0 * v0)
+        cost = np.where(decel, lt * dt_t, 0.0 if F0 == 0 else c_kin)
+        # stranded: after the event a connected engine would run below idle (gear 1 slips)
+        v_after = max(v - max(F0, 0.0) * tau / m, 0.0)
+        w1 = f.gear_ratio * f.r_d * v_after
+        bad = (w1 < f.we_min * (1 - 1e-9)) & (np.arange(w.shape[0]) > 0) & (v > 0)
+        cost = cost + np.where((ce > 0) & bad[None], STRANDED_J, 0.0)
+        cost[MO] = 0.0
+        out[row] = cost
+    return out.reshape(3, -1)
+
+
+def ref_cost_matrix(vp: VehicleParams, v, grade, lam, prm: SwitchCostParams):
+    """Switching cost eps_M + eps_G (J) between all states at one step: (S, S), [s, s'] for
+    s -> s'. Per component c (engine, motor) the rotational energy U_c = 1/2 I_c x_c w^2 (x_c
+    connected, w the gearbox input speed of the gear); the synchronisation energy is
+    (1 - a) max(U_c' - U_c, 0) + a |U_c' - U_c| / 2 summed over c (a = `averaged`), priced at
+    -lambda_b (A17-A19), plus the traction cost of the switch's kind into s'; 0 on the diagonal.
+    """
+    f = _veh(vp)
+    n_g = f.gear_ratio.shape[0]
+    S = N_MODES * n_g
+    w = f.gear_ratio * f.r_d * float(v)
+    trac = ref_traction_table(vp, v, grade, prm)
+    a = float(prm.averaged)
+    mode, gear = np.arange(S) // n_g, np.arange(S) % n_g
+    E = np.zeros((S, S))
+    for inertia, flags in ((f.I_e, ENGINE_CONNECTED), (f.I_m, MOTOR_CONNECTED)):
+        U = 0.5 * inertia * np.asarray(flags, float)[mode] * w[gear] ** 2  # (S,)
+        dU = U[None, :] - U[:, None]  # [s, s'] = U(s') - U(s)
+        E += (1 - a) * np.maximum(dU, 0.0) + a * 0.5 * np.abs(dU)
+    dm = mode[:, None] != mode[None, :]
+    dg = gear[:, None] != gear[None, :]
+    row = np.where(dm & dg, 2, np.where(dm, 0, 1))
+    C = float(prm.weight) * (-float(lam) * E + trac[row, np.arange(S)[None, :]])
+    C[~(dm | dg)] = 0.0
+    return C
+
+
+# ------------------------------------------------------------------------------- Viterbi
+class RefViterbi(NamedTuple):
+    """path: (T,) optimal states; start: the state before step 0; cost: optimal J (+inf if
+    no finite path)."""
+
+    path: np.ndarray
+    start: int
+    cost: float
+
+
+def viterbi_path(stage, Cs, init, mask=None) -> RefViterbi:
+    """Plain Viterbi loop: stage (T, S) state costs (+inf forbids), Cs (T, S, S) transition
+    costs [k, s, s'] or a function k -> (S, S), init (S,) cost of the state before step 0,
+    mask (T,) bool or None (False: no cost, state kept).
+
+    V_k(s') = stage_k(s') + min_s V_{k-1}(s) + C_k(s, s'); ties keep the state, then go to the
+    lowest source; the path ends in the lowest state among the minima.
+    """
+    stage = np.asarray(stage, float)
+    T, S = stage.shape
+    V = np.asarray(init, float).copy()
+    ident = np.arange(S)
+    ptr = np.empty((T, S), np.int64)
+    for k in range(T):
+        if mask is not None and not mask[k]:
+            ptr[k] = ident
+            continue
+        C = Cs(k) if callable(Cs) else Cs[k]
+        tot = V[:, None] + C
+        arg = np.argmin(tot, axis=0)
+        best = tot[arg, ident]
+        stay = V <= best
+        ptr[k] = np.where(stay, ident, arg)
+        V = np.where(stay, V, best) + stage[k]
+    s = int(np.argmin(V))
+    cost = float(V[s])
+    path = np.empty(T, np.int64)
+    for k in range(T - 1, -1, -1):
+        path[k] = s
+        s = int(ptr[k, s])
+    return RefViterbi(path=path, start=s, cost=cost)
+
+
+def numpy_viterbi(stage, Cs, init):
+    """Plain loop: stage (T, S), Cs (T, S, S), init (S,) -> optimal cost."""
+    return viterbi_path(stage, Cs, init).cost
+
+
+# ------------------------------------------------------------------------------- Level 2
+def _gears(f, P_d, v, w):
+    """Gear per step (the rule of `battery.select_gears`) and whether any gear is feasible."""
+    ws = np.asarray(v, float)[:, None] * (f.gear_ratio * f.r_d)[None]  # (T, G)
+    launch = (np.arange(ws.shape[1]) == 0)[None]
+    feas = np.zeros(ws.shape, bool)
+    for mode in range(N_MODES):
+        feas |= _ranges(f, mode, np.asarray(P_d, float)[:, None], ws, launch).ok
+    d = np.abs(ws - np.asarray(w, float)[:, None])
+    any_feas = feas.any(axis=1)
+    gear = np.where(any_feas, np.argmin(np.where(feas, d, np.inf), axis=1), np.argmin(d, axis=1))
+    return gear, any_feas
+
+
+def ref_gears(vp: VehicleParams, P_d, v, w):
+    """Gear index per step: among the gears in which some mode meets P_d, the one whose shaft
+    speed is nearest to w (rad/s); the nearest of all where none does. P_d, v, w: (T,)."""
+    return _gears(_veh(vp), P_d, v, w)[0]
+
+
+class RefSteps(NamedTuple):
+    """Level 2 per step at one costate: (T,) mode, P_b (W), dE = -P_bi dt (J), E_f (J)."""
+
+    mode: np.ndarray
+    P_b: np.ndarray
+    dE: np.ndarray
+    E_f: np.ndarray
+
+
+class _Level2Model:
+    """The Level 2 step model at fixed gears: the four modes' ranges, computed once."""
+
+    def __init__(self, vp, P_d, v, gear, ok, dt, n_grid=33, levels=12):
+        self.f = f = _veh(vp)
+        self.P_d = np.asarray(P_d, float)
+        w = np.asarray(v, float) * f.gear_ratio[gear] * f.r_d
+        self.ranges = [_ranges(f, m, self.P_d, w, gear == 0) for m in range(N_MODES)]
+        self.ok, self.dt = np.asarray(ok, bool), dt
+        self.n_grid, self.levels = n_grid, levels
+
+    def steps(self, lam) -> RefSteps:
+        sols = [_solve_mode(self.f, r, self.P_d, lam, self.n_grid, self.levels)
+                for r in self.ranges]
+        H = np.stack([s[0] for s in sols])  # (4, T)
+        m = np.argmin(H, axis=0)  # ties: the lowest mode index
+        k = np.arange(H.shape[1])
+        use = self.ok & np.isfinite(H[m, k])
+        P_b = np.where(use, np.stack([s[1] for s in sols])[m, k], 0.0)
+        E_f = np.where(use, np.stack([s[2] for s in sols])[m, k], 0.0) * self.dt
+        dE = -(P_b + self.f.beta * P_b * P_b) * self.dt
+        return RefSteps(mode=m, P_b=P_b, dE=dE, E_f=E_f)
+
+
+def ref_steps(vp: VehicleParams, P_d, v, gear, ok, lam, dt, n_grid=33, levels=12) -> RefSteps:
+    """Level 2 per step (eqs. 52-53) at costate lam: in the given gear, the mode with the least
+    H (refined brute force over P_b); steps with ok False (no feasible gear, padding) use
+    P_b = 0 and no fuel. P_d, v, gear, ok: (T,)."""
+    return _Level2Model(vp, P_d, v, gear, ok, dt, n_grid, levels).steps(lam)
+
+
+def ref_end(vp: VehicleParams, P_d, v, w, lam, dt, E0, mask=None):
+    """E_b(t_f) (J) at a constant lambda_b: gears by `ref_gears`, then the best mode of each
+    step at its gear, E_b(k+1) = E_b(k) - P_bi dt from E0."""
+    f = _veh(vp)
+    gear, any_feas = _gears(f, P_d, v, w)
+    ok = any_feas if mask is None else any_feas & np.asarray(mask, bool)
+    return E0 + float(np.sum(ref_steps(vp, P_d, v, gear, ok, lam, dt).dE))
+
+
+class RefCostate(NamedTuple):
+    """Bisection on one constant lambda_b: lam = (lam_lo + lam_hi) / 2; E_end_lo, E_end_hi:
+    E_b(t_f) at the final bracket (they differ by a jump at a guard); gear, ok: (T,) Level 2's
+    gears and usable steps; steps: `RefSteps` at lam."""
+
+    lam: float
+    lam_lo: float
+    lam_hi: float
+    E_end_lo: float
+    E_end_hi: float
+    gear: np.ndarray
+    ok: np.ndarray
+    steps: RefSteps
+
+
+def ref_bisect(vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_end=None,
+               lam_bracket=LAM_BRACKET, n_iter: int = 40, n_grid: int = 33,
+               levels: int = 12) -> RefCostate:
+    """Level 2 without battery limits: bisection on a constant lambda_b so that E_b(t_f) =
+    E_b_end (default E_b0 = soc0 E_b_max: charge sustaining). E_b(t_f) does not increase with
+    lambda_b, so lambda_b rises while E_b(t_f) ends above the target; `n_iter` halvings of
+    `lam_bracket`, as `battery.bisect_costate` does."""
+    f = _veh(vp)
+    E0 = f.soc0 * f.E_b_max if E_b0 is None else float(E_b0)
+    tgt = E0 if E_b_end is None else float(E_b_end)
+    gear, any_feas = _gears(f, P_d, v, w)
+    ok = any_feas if mask is None else any_feas & np.asarray(mask, bool)
+    model = _Level2Model(vp, P_d, v, gear, ok, dt, n_grid, levels)
+    lo, hi = (float(x) for x in lam_bracket)
+    e_lo = E0 + float(np.sum(model.steps(lo).dE))
+    e_hi = E0 + float(np.sum(model.steps(hi).dE))
+    for _ in range(n_iter):
+        mid = 0.5 * (lo + hi)
+        e = E0 + float(np.sum(model.steps(mid).dE))
+        if e > tgt:
+            lo, e_lo = mid, e
+        else:
+            hi, e_hi = mid, e
+    lam = 0.5 * (lo + hi)
+    return RefCostate(lam=lam, lam_lo=lo, lam_hi=hi, E_end_lo=e_lo, E_end_hi=e_hi, gear=gear,
+                      ok=ok, steps=model.steps(lam))
+
+
+def ref_fuel_power(vp: VehicleParams, P_d, w, gear, P_b):
+    """Fuel power (W) of the best mode for battery power P_b (array) at gear speed w: NumPy.
+
+    Written from eqs. 1-7 and the mode definitions (engine and/or motor on the shaft, service
+    brakes absorb a surplus, slipping clutch below idle in gear 1); +inf where infeasible.
+    """
+    f = _veh(vp)
+    eta_e, eta_m = f.eta_e, f.eta_m
+    slip = gear == 0 and w < f.we_min
+    we = f.we_min if slip else w
+    kf = f.we_min / w if slip else 1.0
+    pe_min, pe_max = (float(x) for x in _engine_limits(f, we))
+    e_ok = f.we_min * (1 - 1e-9) <= we <= f.we_max and w > 0
+    e_lo, e_hi = pe_min / kf, pe_max / kf
+    pe0 = float(_engine_friction(f, we))
+    m_lim = float(_motor_limit(f, w))
+    pm0 = float(_motor_friction(f, w))
+    m_ok = w <= f.wm_max
+    P_b = np.asarray(P_b, float)
+    P_m = pm0 + np.where(P_b > 0, eta_m * P_b, P_b / eta_m)
+    out = np.full(P_b.shape, np.inf)
+
+    def engine_fuel(P_out):
+        return np.maximum(kf * P_out - pe0, 0.0) / eta_e
+
+    tiny = 1e-6
+    if e_ok and m_ok:  # combined
+        ok = (np.abs(P_m) <= m_lim + tiny) & (P_d - P_m <= e_hi + tiny)
+        out = np.where(ok, np.minimum(out, engine_fuel(np.clip(P_d - P_m, e_lo, e_hi))), out)
+    zero = np.abs(P_b) < 1e-9
+    if e_ok and P_d <= e_hi:  # engine-only: P_b = 0
+        out = np.where(zero, np.minimum(out, engine_fuel(np.clip(P_d, e_lo, e_hi))), out)
+    if m_ok:  # motor-only: P_m in [max(-m_lim, P_d), m_lim], no fuel
+        ok = (P_m >= max(-m_lim, P_d) - tiny) & (P_m <= m_lim + tiny)
+        out = np.where(ok, np.minimum(out, 0.0), out)
+    if P_d <= 0:  # open driveline
+        out = np.where(zero, 0.0, out)
+    return out
+
+
+def ref_dp(vp: VehicleParams, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=301,
+           end_weight=6.0):
+    """Minimal fuel (J) by DP over an E_b grid of n_grid points with E_b(t_f) = E0.
+
+    Backward recursion with the cost-to-go interpolated linearly between grid points. Controls
+    per step: n_ctrl battery powers over the motor's range plus the exact points of the
+    engine-only / open (P_b = 0) and motor-only (P_m = P_d) modes; the fuel of the best mode
+    for each. The end condition is a penalty end_weight |E_b - E0| with end_weight above every
+    costate in the bracket, so missing it never pays.
+    """
+    f = _veh(vp)
+    gears = ref_gears(vp, P_d, v, w)
+    grid = np.linspace(E_min, E_max, n_grid)
+    beta, eta_m = f.beta, f.eta_m
+    big = 1e15
+    V = end_weight * np.abs(grid - E0)
+    for k in range(len(P_d) - 1, -1, -1):
+        wk = float(f.gear_ratio[gears[k]] * f.r_d * v[k])
+        m_lim = float(_motor_limit(f, wk))
+        pm0 = float(_motor_friction(f, wk))
+        lim_b = (m_lim - pm0) / eta_m + 1.0
+        d = P_d[k] - pm0
+        exact = d / eta_m if d > 0 else d * eta_m  # motor-only with P_m = P_d
+        U = np.concatenate([np.linspace(-lim_b, lim_b, n_ctrl), [0.0, exact]])
+        c = ref_fuel_power(vp, P_d[k], wk, gears[k], U) * dt
+        if not np.isfinite(c).any():  # nothing feasible: the Level 2 model skips the step
+            c = np.where(U == 0.0, 0.0, np.inf)
+        keep = np.isfinite(c)
+        U, c = U[keep], c[keep]
+        E_next = grid[:, None] - (U + beta * U * U)[None, :] * dt
+        inside = (E_next >= E_min - 1e-9) & (E_next <= E_max + 1e-9)
+        Vn = np.interp(E_next, grid, V)
+        V = np.min(np.where(inside, c[None, :] + Vn, big), axis=1)
+    return float(np.interp(E0, grid, V))
+
+
+# ---------------------------------------------------------------------------- the pipeline
+class RefPlan(NamedTuple):
+    """`reference_plan`'s result. mode, gear, state: (T,) the Level 1 plan (indices); P_b, P_f:
+    (T,) W of the planned split (0 on masked or infeasible steps); fuel_J: () sum of P_f dt;
+    cost: () the DP's optimum (J: H dt + switching costs); lam: () Level 2's costate;
+    n_infeasible: () steps without a feasible (mode, gear); pred: `RefPrediction`; costate:
+    `RefCostate`; stage_s: wall seconds per stage (level3, level2, level1_table, viterbi)."""
+
+    mode: np.ndarray
+    gear: np.ndarray
+    state: np.ndarray
+    P_b: np.ndarray
+    P_f: np.ndarray
+    fuel_J: float
+    cost: float
+    lam: float
+    n_infeasible: int
+    pred: RefPrediction
+    costate: RefCostate
+    stage_s: dict
+
+
+def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: int = 40,
+                   n_steps: int | None = None, params: SwitchCostParams | None = None,
+                   n_grid: int = 33, levels: int = 12) -> RefPlan:
+    """Iteration 0 of the multilevel planning pipeline in NumPy (one route, one vehicle).
+
+    1. Level 3: `ref_prediction` (engine speed w_pred in the forward pass), n_steps steps of dt.
+    2. Level 2: `ref_bisect` with n_iter_l2 halvings: charge sustaining from soc0 E_b_max, no
+       battery limits, gears from the constant engine speed w_pred.
+    3. Level 1: `split_table` at Level 2's costate (H dt per state, 0 for every state of a step
+       where none is feasible) and `viterbi_path` with `ref_cost_matrix` of each step (speed,
+       gradient, costate) as transition costs; from the open driveline in gear 1 when the
+       route starts at standstill, free otherwise; masked steps keep the state.
+
+    n_grid, levels: the refined brute-force search of the Level 1 and Level 2 splits.
+    Returns `RefPlan`.
+    """
+    params = SwitchCostParams() if params is None else params
+    f = _veh(vp)
+    stage_s = {}
+    t0 = time.perf_counter()
+    pred = ref_prediction(route, vp, dt, n_steps)
+    t1 = time.perf_counter()
+    stage_s["level3"] = t1 - t0
+    T = pred.v.shape[0]
+    w = np.full(T, f.w_pred)
+    c2 = ref_bisect(vp, pred.P_d, pred.v, w, pred.mask, dt, n_iter=n_iter_l2, n_grid=n_grid,
+                    levels=levels)
+    t2 = time.perf_counter()
+    stage_s["level2"] = t2 - t1
+    lam = c2.lam
+    tab = split_table(vp, pred.P_d, pred.v, lam, n_grid, levels)
+    H = tab.H.reshape(T, -1) * dt
+    none = ~np.any(np.isfinite(H), axis=1)
+    H[none] = 0.0
+    t3 = time.perf_counter()
+    stage_s["level1_table"] = t3 - t2
+    S = H.shape[1]
+    n_g = S // N_MODES
+    init = np.zeros(S)
+    if pred.v_ref[0] <= 0:
+        init = np.full(S, np.inf)
+        init[MO * n_g] = 0.0
+
+    def costs(k):
+        return ref_cost_matrix(vp, pred.v[k], pred.grade[k], lam, params)
+
+    vit = viterbi_path(H, costs, init, pred.mask)
+    stage_s["viterbi"] = time.perf_counter() - t3
+    path = vit.path
+    mode, gear = path // n_g, path % n_g
+    k = np.arange(T)
+    P_b = np.where(pred.mask, tab.P_b[k, mode, gear], 0.0)
+    P_f = np.where(pred.mask, tab.P_f[k, mode, gear], 0.0)
+    return RefPlan(
+        mode=mode, gear=gear, state=path, P_b=P_b, P_f=P_f, fuel_J=float(np.sum(P_f) * dt),
+        cost=vit.cost, lam=lam, n_infeasible=int(np.sum(pred.mask & none)), pred=pred,
+        costate=c2, stage_s=stage_s,
+    )
+
+
+# ------------------------------------------------------------- the same stages through JAX
+class KernelPlan(NamedTuple):
+    """`kernel_plan`'s result (arrays): mode, gear, P_b (W), P_f (W): (T,); fuel_J, cost, lam:
+    (); status: () Level 2's status flags (`battery.status_names`)."""
+
+    mode: Any
+    gear: Any
+    P_b: Any
+    P_f: Any
+    fuel_J: Any
+    cost: Any
+    lam: Any
+    status: Any
+
+
+def kernel_plan(route: Route, vp: VehicleParams, params: SwitchCostParams, *, dt: float,
+                n_steps: int, n_iter_l2: int = 40) -> KernelPlan:
+    """The stages of `reference_plan` through the JAX kernels (traceable; jit and vmap it):
+    `strategies.level3`, `battery.costate_kernel` with one piece and no limits (plain
+    bisection on lambda_b), `strategies._level1` (Hamiltonian table, switching costs,
+    Viterbi) at that costate. dt, n_steps, n_iter_l2 are static."""
+    import jax.numpy as jnp
+
+    from . import strategies
+    from .levels import battery as l2
+
+    pred = strategies.level3(route, vp, dt, n_steps)
+    w = jnp.full_like(pred.v, vp.w_pred)
+    c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt, E_min=-jnp.inf,
+                           E_max=jnp.inf, n_iter=n_iter_l2, max_pieces=1)
+    r1 = strategies._level1(vp, pred, c2.lam0, dt, params)
+    fuel = jnp.sum(jnp.where(pred.mask, r1.P_f, 0.0)) * dt
+    return KernelPlan(mode=r1.mode, gear=r1.gear, P_b=r1.P_b, P_f=r1.P_f, fuel_J=fuel,
+                      cost=r1.cost, lam=c2.lam0, status=c2.status)
+
+
+def compare_plans(ref: RefPlan, ker: KernelPlan) -> dict:
+    """Agreement of a kernel plan with the reference: relative fuel difference, costate
+    difference, and the fraction of valid steps with the same mode, gear, and both."""
+    m = ref.pred.mask
+    mode = np.asarray(ker.mode)[m] == ref.mode[m]
+    gear = np.asarray(ker.gear)[m] == ref.gear[m]
+    fuel = float(ker.fuel_J)
+    return {
+        "fuel_rel": abs(fuel - ref.fuel_J) / max(abs(ref.fuel_J), 1.0),
+        "lam_abs": abs(float(ker.lam) - ref.lam),
+        "mode_agree": float(np.mean(mode)),
+        "gear_agree": float(np.mean(gear)),
+        "state_agree": float(np.mean(mode & gear)),
+    }
+
+
+__all__ = [
+    "KernelPlan", "RefCostate", "RefPlan", "RefPrediction", "RefSplit", "RefSteps", "RefViterbi",
+    "a_fwd", "compare_plans", "kernel_plan", "numpy_viterbi", "ref_bisect", "ref_cost_matrix",
+    "ref_dp", "ref_end", "ref_fuel_power", "ref_gears", "ref_pieces", "ref_prediction",
+    "ref_profile", "ref_split", "ref_steps", "ref_time_grid", "ref_traction_table",
+    "reference_plan", "road_load", "split_table", "viterbi_path",
+]
