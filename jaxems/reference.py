@@ -815,8 +815,9 @@ def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: 
 
 # ------------------------------------------------------------- the same stages through JAX
 class KernelPlan(NamedTuple):
-    """`kernel_plan`'s result (arrays): mode, gear, P_b (W), P_f (W): (T,); fuel_J, cost, lam:
-    (); status: () Level 2's status flags (`battery.status_names`)."""
+    """`kernel_plan`'s result (arrays): mode, gear, P_b (W), P_f (W): (T,) the plan; fuel_J,
+    cost, lam: (); status: () Level 2's status flags (`battery.status_names`); P_d (W), v
+    (m/s), grade, mask: (T,) the Level 3 prediction the plan is for."""
 
     mode: Any
     gear: Any
@@ -826,6 +827,10 @@ class KernelPlan(NamedTuple):
     cost: Any
     lam: Any
     status: Any
+    P_d: Any
+    v: Any
+    grade: Any
+    mask: Any
 
 
 def kernel_plan(route: Route, vp: VehicleParams, params: SwitchCostParams, *, dt: float,
@@ -846,7 +851,8 @@ def kernel_plan(route: Route, vp: VehicleParams, params: SwitchCostParams, *, dt
     r1 = strategies._level1(vp, pred, c2.lam0, dt, params)
     fuel = jnp.sum(jnp.where(pred.mask, r1.P_f, 0.0)) * dt
     return KernelPlan(mode=r1.mode, gear=r1.gear, P_b=r1.P_b, P_f=r1.P_f, fuel_J=fuel,
-                      cost=r1.cost, lam=c2.lam0, status=c2.status)
+                      cost=r1.cost, lam=c2.lam0, status=c2.status, P_d=pred.P_d, v=pred.v,
+                      grade=pred.grade, mask=pred.mask)
 
 
 def compare_plans(ref: RefPlan, ker: KernelPlan) -> dict:
