@@ -1,7 +1,7 @@
 """FASTSim 3 against jaxems: simulated seconds per wall second on one speed trace (a benchmark).
 
     python benchmarks/bench_fastsim.py [--route LongHaul] [--repeats 3] [--batch 64]
-        [--batch-slow 8] [--strategies conventional,baseline,multilevel]
+        [--batch-slow 8] [--repeats-slow 1] [--strategies conventional,baseline,multilevel]
         [--vehicle 2021_Hyundai_Sonata_Hybrid_Blue_thrml.yaml] [--procs N] [--json]
 
 The trace is jaxems's Level 3 prediction of the route for the reference truck at 20 t (Table 8),
@@ -15,16 +15,21 @@ FASTSim (NREL, PyPI ``fastsim``, Rust core; ``pip install -e '.[bench]'``) simul
 bundled HEVs (a passenger car, not our truck: the trace is the same, the vehicle is not) with
 its rule-based controller, ``SimDrive.run()`` (which repeats the trip until the battery's state
 of charge balances), without saving histories (``save_interval = None``) and letting the car
-fall behind the trace where it lacks power. After a warm-up run, the median of `repeats` runs
+fall behind the trace where it lacks power. The default car, the 2021 Hyundai Sonata Hybrid
+(with FASTSim's cabin, HVAC, engine and battery thermal models), follows the whole LongHaul
+trace; the 2016 Prius (no thermal models) takes about as long but falls behind on the steepest
+climbs (`trace_met` False). After a warm-up run, the median of `repeats` runs
 gives sim_s_per_wall_s = cycle seconds / wall seconds for one process; with --procs N > 1 also
 the throughput of N worker processes running trips side by side (``sim_s_per_wall_s_procs``).
 
 jaxems runs `simulate_batch` per strategy on a batch of configurations that all drive this trace
 (20 t; battery sizes 1-8 MJ, which Level 3 does not see): after a compiling call, the median of
 `repeats` calls gives configs_per_s and sim_s_per_wall_s = (sum of the runs' trip times) / wall.
-The slow strategies (multilevel, multilevel-mpc, dp-bound) use --batch-slow configurations.
+The slow strategies (multilevel, multilevel-mpc, dp-bound) use --batch-slow configurations and
+--repeats-slow timed calls (default 1: a call takes minutes).
 cpu_per_wall is process CPU seconds per wall second during the timed calls (how many cores were
-busy). With --json one object:
+busy) and sim_s_per_cpu_s simulated seconds per CPU second of the process (all its threads):
+steadier than wall time on a loaded machine; ratio_cpu compares those. With --json one object:
 
     {"route": .., "cycle_s": .., "fastsim": {"sim_s_per_wall_s": .., "wall_s": .., "vehicle": ..,
      ...}, "jaxems": {NAME: {"sim_s_per_wall_s": .., "configs_per_s": .., "batch": .., ...}},
@@ -179,6 +184,7 @@ def time_fastsim(cycle: dict, vehicle: str, repeats: int) -> dict:
     wall = statistics.median(times)
     cycle_s = float(cycle["time_seconds"][-1] - cycle["time_seconds"][0])
     return {"vehicle": vehicle, "wall_s": wall, "sim_s_per_wall_s": cycle_s / wall,
+            "sim_s_per_cpu_s": cycle_s * len(cpu) / sum(cpu),
             "cpu_per_wall": sum(cpu) / sum(times), "repeats": len(times),
             "soc_balanced": balance, **fastsim_summary(sd)}
 
@@ -250,6 +256,7 @@ def time_jaxems(route, strategy: str, batch: int, repeats: int, mass_kg: float =
     wall = statistics.median(times)
     sim_s = float(np.sum(out["trip_time_s"]))
     return {"batch": batch, "configs_per_s": batch / wall, "sim_s_per_wall_s": sim_s / wall,
+            "sim_s_per_cpu_s": sim_s * len(cpu) / sum(cpu), "repeats": len(times),
             "median_s": wall, "compile_s": max(first - wall, 0.0),
             "cpu_per_wall": sum(cpu) / sum(times), "n_steps": n_steps,
             "trip_time_s": sim_s / batch,
@@ -271,6 +278,8 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=64)
     ap.add_argument("--batch-slow", type=int, default=8,
                     help=f"batch of the slow strategies ({', '.join(SLOW)})")
+    ap.add_argument("--repeats-slow", type=int, default=1,
+                    help="timed calls of the slow strategies (each takes minutes)")
     ap.add_argument("--strategies", default="conventional,baseline,multilevel")
     ap.add_argument("--vehicle", default=DEFAULT_VEHICLE,
                     help="a FASTSim bundled vehicle (fastsim.Vehicle.list_resources())")
@@ -278,8 +287,9 @@ def main(argv=None) -> int:
                     help="FASTSim worker processes for the parallel figure (1: none)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
-    if min(args.batch, args.batch_slow, args.repeats, args.procs) < 1:
-        ap.error("--batch, --batch-slow, --repeats and --procs must be at least 1")
+    if min(args.batch, args.batch_slow, args.repeats, args.repeats_slow, args.procs) < 1:
+        ap.error("--batch, --batch-slow, --repeats, --repeats-slow and --procs must be at "
+                 "least 1")
 
     fsim = _require_fastsim()  # fail before any JAX work
     names = [str(p) for p in fsim.Vehicle.list_resources()]
@@ -305,6 +315,7 @@ def main(argv=None) -> int:
 
     fs = time_fastsim(cycle, args.vehicle, args.repeats)
     print(f"{'FASTSim ' + fs['vehicle_name']:34s} {fs['sim_s_per_wall_s']:12.0f} sim s/s  "
+          f"({fs['sim_s_per_cpu_s']:.0f} per CPU s)  "
           f"run {fs['wall_s'] * 1e3:8.1f} ms  fuel {fs['fuel_MJ']:.1f} MJ  "
           f"trace met {fs['trace_met']}", file=log, flush=True)
     if args.procs > 1:
@@ -319,18 +330,21 @@ def main(argv=None) -> int:
         "speed": "v_ref (instantaneous speed at each 1 s step)", "dt_s": float(pred.dt),
         "distance_m": trace_distance_m(cycle), "route_length_m": float(pred.length),
         "rise_m": trace_rise_m(cycle), "truck_mass_kg": 20000.0, "precision": "float32"},
-        "fastsim": fs, "jaxems": {}, "ratio": {}, "cores": _cores()}
+        "fastsim": fs, "jaxems": {}, "ratio": {}, "ratio_cpu": {}, "cores": _cores()}
     if "sim_s_per_wall_s_procs" in fs:
         out["ratio_procs"] = {}
     for name in strategies:
-        b = args.batch_slow if name in SLOW else args.batch
-        r = time_jaxems(route, name, b, args.repeats)
+        slow = name in SLOW
+        b = args.batch_slow if slow else args.batch
+        r = time_jaxems(route, name, b, args.repeats_slow if slow else args.repeats)
         out["jaxems"][name] = r
         out["ratio"][name] = r["sim_s_per_wall_s"] / fs["sim_s_per_wall_s"]
+        out["ratio_cpu"][name] = r["sim_s_per_cpu_s"] / fs["sim_s_per_cpu_s"]
         if "ratio_procs" in out:
             out["ratio_procs"][name] = r["sim_s_per_wall_s"] / fs["sim_s_per_wall_s_procs"]
         print(f"{'jaxems ' + name + f' (batch {b})':34s} {r['sim_s_per_wall_s']:12.0f} sim s/s  "
-              f"{r['configs_per_s']:8.2f} configs/s  x{out['ratio'][name]:.2f} FASTSim  "
+              f"{r['configs_per_s']:8.2f} configs/s  x{out['ratio'][name]:.3g} FASTSim "
+              f"(x{out['ratio_cpu'][name]:.3g} per CPU s)  "
               f"(compile {r['compile_s']:.0f} s, {r['cpu_per_wall']:.1f} cores busy)",
               file=log, flush=True)
     if args.json:
