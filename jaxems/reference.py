@@ -833,22 +833,44 @@ class KernelPlan(NamedTuple):
     mask: Any
 
 
+def kernel_level3(route: Route, vp: VehicleParams, *, dt: float, n_steps: int):
+    """Stage 1 of `kernel_plan`: the Level 3 `Prediction` (`strategies.level3`, w_pred)."""
+    from . import strategies
+
+    return strategies.level3(route, vp, dt, n_steps)
+
+
+def kernel_level2(vp: VehicleParams, pred, *, dt: float, n_iter_l2: int = 40):
+    """Stage 2 of `kernel_plan`: `battery.costate_kernel` with one piece and no battery limits
+    (plain bisection on lambda_b, charge sustaining), gears from the constant engine speed
+    w_pred. Returns its `CostateResult`."""
+    import jax.numpy as jnp
+
+    from .levels import battery as l2
+
+    w = jnp.full_like(pred.v, vp.w_pred)
+    return l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt, E_min=-jnp.inf,
+                             E_max=jnp.inf, n_iter=n_iter_l2, max_pieces=1)
+
+
+def kernel_level1(vp: VehicleParams, pred, lam, params: SwitchCostParams, *, dt: float):
+    """Stage 3 of `kernel_plan`: `strategies._level1` (Hamiltonian table, switching costs,
+    Viterbi; the start state of the strategy) at the costate lam. Returns `Level1Result`."""
+    from . import strategies
+
+    return strategies._level1(vp, pred, lam, dt, params)
+
+
 def kernel_plan(route: Route, vp: VehicleParams, params: SwitchCostParams, *, dt: float,
                 n_steps: int, n_iter_l2: int = 40) -> KernelPlan:
     """The stages of `reference_plan` through the JAX kernels (traceable; jit and vmap it):
-    `strategies.level3`, `battery.costate_kernel` with one piece and no limits (plain
-    bisection on lambda_b), `strategies._level1` (Hamiltonian table, switching costs,
-    Viterbi) at that costate. dt, n_steps, n_iter_l2 are static."""
+    `kernel_level3`, `kernel_level2` and `kernel_level1` at Level 2's first costate. dt,
+    n_steps, n_iter_l2 are static."""
     import jax.numpy as jnp
 
-    from . import strategies
-    from .levels import battery as l2
-
-    pred = strategies.level3(route, vp, dt, n_steps)
-    w = jnp.full_like(pred.v, vp.w_pred)
-    c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt, E_min=-jnp.inf,
-                           E_max=jnp.inf, n_iter=n_iter_l2, max_pieces=1)
-    r1 = strategies._level1(vp, pred, c2.lam0, dt, params)
+    pred = kernel_level3(route, vp, dt=dt, n_steps=n_steps)
+    c2 = kernel_level2(vp, pred, dt=dt, n_iter_l2=n_iter_l2)
+    r1 = kernel_level1(vp, pred, c2.lam0, params, dt=dt)
     fuel = jnp.sum(jnp.where(pred.mask, r1.P_f, 0.0)) * dt
     return KernelPlan(mode=r1.mode, gear=r1.gear, P_b=r1.P_b, P_f=r1.P_f, fuel_J=fuel,
                       cost=r1.cost, lam=c2.lam0, status=c2.status, P_d=pred.P_d, v=pred.v,
@@ -873,8 +895,9 @@ def compare_plans(ref: RefPlan, ker: KernelPlan) -> dict:
 
 __all__ = [
     "KernelPlan", "RefCostate", "RefPlan", "RefPrediction", "RefSplit", "RefSteps", "RefViterbi",
-    "a_fwd", "compare_plans", "kernel_plan", "numpy_viterbi", "ref_bisect", "ref_cost_matrix",
-    "ref_dp", "ref_end", "ref_fuel_power", "ref_gears", "ref_pieces", "ref_prediction",
-    "ref_profile", "ref_split", "ref_steps", "ref_time_grid", "ref_traction_table",
-    "reference_plan", "road_load", "split_table", "viterbi_path",
+    "a_fwd", "compare_plans", "kernel_level1", "kernel_level2", "kernel_level3", "kernel_plan",
+    "numpy_viterbi", "ref_bisect", "ref_cost_matrix", "ref_dp", "ref_end", "ref_fuel_power",
+    "ref_gears", "ref_pieces", "ref_prediction", "ref_profile", "ref_split", "ref_steps",
+    "ref_time_grid", "ref_traction_table", "reference_plan", "road_load", "split_table",
+    "viterbi_path",
 ]
