@@ -35,6 +35,14 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   speed w_pred) -> Level 1 Hamiltonian table over mode x gear per step + Viterbi with switching
   costs. The strategy itself adds what this pipeline leaves out (battery limits by I1 pieces,
   Level 2's I2b sides at guards, the charge-sustaining shift of Level 1's costate, the plant).
+- `kernel_plan` (stages `kernel_level3`, `kernel_level2`, `kernel_level1`) runs the same
+  stages through the JAX kernels, and `compare_plans` measures the agreement of the two.
+
+Where the loops are: Level 3 loops over nodes and time steps, the Viterbi DP over time steps
+(building each step's cost matrix), the split search and the Level 2 bisection over modes and
+refinement levels with NumPy arrays over the time steps (and gears), and the cost matrix is
+broadcast over state pairs; on LongHaul (about 5000 steps) `reference_plan` takes 6-9 s on one
+core, half of it the Level 2 bisection.
 
 Conventions follow the kernels: mode indices 0 M_c, 1 M_e, 2 M_m, 3 M_o; gear index 0 is gear
 1; state s = mode * n_gears + gear; SI units; lambda_b < 0.
