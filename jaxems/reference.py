@@ -41,8 +41,8 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
 Where the loops are: Level 3 loops over nodes and time steps, the Viterbi DP over time steps
 (building each step's cost matrix), the split search and the Level 2 bisection over modes and
 refinement levels with NumPy arrays over the time steps (and gears), and the cost matrix is
-broadcast over state pairs; on LongHaul (about 5000 steps) `reference_plan` takes 6-9 s on one
-core, half of it the Level 2 bisection.
+broadcast over state pairs; on LongHaul (about 5000 steps) `reference_plan` takes 5-9 s on one
+core (shared machine), 40-60 % of it the Level 2 bisection.
 
 Conventions follow the kernels: mode indices 0 M_c, 1 M_e, 2 M_m, 3 M_o; gear index 0 is gear
 1; state s = mode * n_gears + gear; SI units; lambda_b < 0.
