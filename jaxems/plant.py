@@ -37,7 +37,9 @@ import jax
 import jax.numpy as jnp
 
 from . import powertrain as pt
+from . import switching as sw
 from .levels import powersplit as ps
+from .levels.velocity import V_CRAWL
 from .params import VehicleParams
 
 MO = ps.MO
@@ -188,13 +190,32 @@ def _pb_of_pbi(vp, P_bi):
     return (jnp.sqrt(disc) - 1.0) / (2.0 * vp.beta)
 
 
-def rotational_energy(vp: VehicleParams, mode, gear, v):
-    """Kinetic energy (J) of the connected engine and motor inertias in state (mode, gear)."""
-    w = vp.gear_ratio[gear] * vp.r_d * v
-    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
-    cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode] & (vp.has_motor > 0.5)
-    we = jnp.maximum(w, jnp.where(gear == 0, vp.we_min, 0.0))  # a slipping engine idles
-    return 0.5 * (jnp.where(ce, vp.I_e * we * we, 0.0) + jnp.where(cm, vp.I_m * w * w, 0.0))
+def sync_energy(vp: VehicleParams, mode0, gear0, mode1, gear1, v):
+    """Synchronisation energy (J, >= 0) of the switch (mode0, gear0) -> (mode1, gear1) at speed
+    v: the rise in rotational energy of each connected inertia, counted per component as in the
+    switching costs (`switching.sync_energy`, Appendix C.1). A slipping engine in gear 1 turns
+    at idle at least; a truck without a motor has no motor inertia to spin. Scalars."""
+    w = pt.shaft_speeds(vp, v)
+    w0, w1 = w[gear0], w[gear1]
+    ce, cm = jnp.asarray(ps.ENGINE_CONNECTED), jnp.asarray(ps.MOTOR_CONNECTED)
+    has_m = vp.has_motor > 0.5
+    we0 = jnp.maximum(w0, jnp.where(gear0 == 0, vp.we_min, 0.0))
+    we1 = jnp.maximum(w1, jnp.where(gear1 == 0, vp.we_min, 0.0))
+    f = lambda x: jnp.asarray(x, w0.dtype)  # noqa: E731
+    return (sw.sync_energy(vp, f(ce[mode0]), 0.0, we0, f(ce[mode1]), 0.0, we1)
+            + sw.sync_energy(vp, 0.0, f(cm[mode0] & has_m), w0, 0.0, f(cm[mode1] & has_m), w1))
+
+
+def path_sync_energy(vp: VehicleParams, mode, gear, v):
+    """(T,) battery energy (J) a plan's switches draw for synchronisation, as the plant does:
+    at step k the switch from step k-1's (mode, gear) to step k's at speed v_k, drawn through
+    the motor (1 / eta_m); 0 at step 0 (a plan starts in its own first state) and for a truck
+    without a motor (it pays in fuel). mode, gear, v: (T,)."""
+    pm = jnp.concatenate([mode[:1], mode[:-1]])
+    pg = jnp.concatenate([gear[:1], gear[:-1]])
+    switched = (mode != pm) | ((gear != pg) & (mode != MO))
+    dU = jax.vmap(lambda a, b, c, d, x: sync_energy(vp, a, b, c, d, x))(pm, pg, mode, gear, v)
+    return jnp.where(switched & (vp.has_motor > 0.5), dU / vp.eta_m, 0.0)
 
 
 idle_fuel_power = ps.idle_fuel_power
@@ -252,7 +273,10 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     has_stop = jnp.isfinite(s_stop)
     d_stop = jnp.maximum(s_stop - s0, 0.0)
     standing = st.dwell > 0
-    v_tgt = jnp.where(standing, 0.0, v_tgt)
+    # never below Level 3's crawl speed short of a stop or the end (a reference that rounds to
+    # zero just before a stop must not leave the truck standing there)
+    d_left = jnp.minimum(d_stop, jnp.maximum(track.length - s0, 0.0))
+    v_tgt = jnp.where(standing, 0.0, jnp.maximum(v_tgt, jnp.minimum(V_CRAWL, d_left / dt)))
     v_cap = jnp.maximum(2.0 * d_stop / dt - v0, 0.0)
     v1_tgt = jnp.minimum(jnp.minimum(v_tgt, v0 + vp.a_max * dt), v_cap)
     ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)
@@ -306,9 +330,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     mode = req_mode
     gear = jnp.where(req_mode == MO, st.gear, req_gear)
     # synchronisation energy of the new inertias (App. C.1): from the battery or from fuel
-    dU = jnp.maximum(rotational_energy(vp, mode, gear, v0)
-                     - rotational_energy(vp, st.mode, st.gear, v0), 0.0)
-    dU = jnp.where(mode_sw | gear_sw, dU, 0.0)
+    dU = jnp.where(mode_sw | gear_sw, sync_energy(vp, st.mode, st.gear, mode, gear, v0), 0.0)
     sync_from_batt = (vp.has_motor > 0.5) & (st.E_b >= dU / vp.eta_m)
     E_sync_b = jnp.where(sync_from_batt, dU / vp.eta_m, 0.0)
     E_sync_f = jnp.where(sync_from_batt, 0.0, dU / vp.eta_e)

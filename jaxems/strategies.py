@@ -71,7 +71,9 @@ class Options(NamedTuple):
     charge sustaining on its own model (`sustaining_level1`); guard_sides: Level 1 follows
     Level 2's I2b sides at guards (`guard_lambda`); l2_pieces: the most pieces of Level 2's
     piecewise-constant costate (I1); tau_E: time constant (s) of the plant's battery-power
-    feedback on the deviation from a plan's battery energy.
+    feedback on the deviation from a plan's battery energy; same_open_time: every vehicle
+    has dt_M == dt_G, so Level 1 takes the fast relaxation without a runtime branch (set by
+    `simulate` and `simulate_batch` from the vehicles; None: decided at run time).
     """
 
     n_iter: int = 2
@@ -90,6 +92,7 @@ class Options(NamedTuple):
     guard_sides: bool = True
     l2_pieces: int = 32
     tau_E: float = 60.0
+    same_open_time: bool | None = None
 
 
 class Metrics(NamedTuple):
@@ -156,17 +159,69 @@ def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
                               P_b=P_b)
 
 
-def plan_energy(vp, P_b, mask, dt):
-    """(T,) battery energy at the start of each step along a plan's battery power."""
-    dE = jnp.where(mask, -pt.battery_internal(vp, P_b) * dt, 0.0)
+def steps_energy(vp, pred, mode, gear, P_b, dt):
+    """(T,) battery energy change (J) of each step of a plan: its battery power P_b and the
+    synchronisation energy its switches draw (`plant.path_sync_energy`). mode, gear, P_b: (T,)."""
+    dE = -pt.battery_internal(vp, P_b) * dt - pl.path_sync_energy(vp, mode, gear, pred.v)
+    return jnp.where(pred.mask, dE, 0.0)
+
+
+def plan_energy(vp, dE):
+    """(T,) battery energy at the start of each step, from each step's change dE: (T,)."""
     return vp.soc0 * vp.E_b_max + jnp.concatenate([jnp.zeros(1, dE.dtype), jnp.cumsum(dE)[:-1]])
 
 
-def make_plan(vp, r1: l1.Level1Result, lam, pred, dt, tau_E) -> Plan:
+def single_piece(T: int, dtype):
+    """The whole route as one piece that ends where it starts (charge sustaining):
+    (pid (T,), target (1,)) as `piece_targets` gives them."""
+    return jnp.zeros(T, jnp.int32), jnp.zeros(1, dtype)
+
+
+def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int = 40):
+    """Battery power of a plan adjusted where the combined mode lets it move freely, so that the
+    plan's energy change over each piece meets its target (pid: (T,), target: (K,), as
+    `piece_targets`). Level 1's decisions move the battery in discrete steps (a climb on the
+    motor or not); in M_c the engine and the motor share the demand continuously, so a plan's
+    residual is spread there: on the M_c steps of piece p, P_b moves the fraction theta_p of the
+    way to the top (theta_p > 0) or bottom (< 0) of the state's battery-power range, theta_p in
+    [-1, 1] by bisection. The engine is affine in its power (Willans), so this costs about
+    lambda_b per joule. A piece without M_c steps keeps its residual. Returns P_b: (T,)."""
+    r = jax.vmap(lambda m, g, v: pl.state_ranges(vp, m, g, v))(mode, gear, pred.v)
+    adj = pred.mask & (mode == ps.MC) & r.ok
+    lo = jnp.minimum(ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, pred.P_d - r.e_hi)), P_b)
+    hi = jnp.maximum(ps.pb_of_pm(vp, r, jnp.minimum(r.m_lim, pred.P_d - r.e_lo)), P_b)
+    K = target.shape[0]
+    sync = jnp.where(pred.mask, pl.path_sync_energy(vp, mode, gear, pred.v), 0.0)
+
+    def P_of(theta):
+        th = theta[pid]
+        return jnp.where(adj, jnp.where(th > 0, P_b + th * (hi - P_b), P_b + th * (P_b - lo)),
+                         P_b)
+
+    def err(theta):  # decreases with theta (more discharge)
+        dE = jnp.where(pred.mask, -pt.battery_internal(vp, P_of(theta)) * dt, 0.0) - sync
+        return jax.ops.segment_sum(dE, pid, K) - target
+
+    def bis(_, c):
+        a, b = c
+        m = 0.5 * (a + b)
+        pos = err(m) > 0
+        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+
+    one = jnp.ones((K,), P_b.dtype)
+    a, b = jax.lax.fori_loop(0, n_bisect, bis, (-one, one))
+    return P_of(0.5 * (a + b))
+
+
+def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) -> Plan:
+    """A `Plan` from decisions (mode, gear, P_b: (T,)) and the costate, its battery power
+    trimmed to the pieces' targets (`trim_battery_power`; default: charge sustaining)."""
     lam = jnp.broadcast_to(lam, pred.v.shape)
-    return Plan(mode=r1.mode, gear=r1.gear, lam=lam, P_b=r1.P_b,
-                E_ref=plan_energy(vp, r1.P_b, pred.mask, dt),
-                k_E=jnp.asarray(1.0 / tau_E, lam.dtype))
+    pid, target = pieces if pieces is not None else single_piece(lam.shape[0], lam.dtype)
+    P_b = trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt)
+    return Plan(mode=mode, gear=gear, lam=lam, P_b=P_b,
+                E_ref=plan_energy(vp, steps_energy(vp, pred, mode, gear, P_b, dt)),
+                k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype))
 
 
 def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
@@ -188,54 +243,110 @@ def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
     return jnp.clip(jnp.where(jump[pid], side, c2.lam), l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
 
 
-def sustaining_level1(vp, pred, lam, dt, params, n_bisect: int = 14, gap: float = 0.05):
-    """Level 1 whose own battery balance is sustained: shift lambda_b(t) by a constant found by
-    bisection so that the DP's plan ends at E_b(t0); where the plan's end energy jumps (a guard,
-    as in I2 of Level 2) the two plans either side are joined in time: the shift below the jump
-    up to a switching step t_s and above it after, t_s found by bisection (I2b's single switch).
-    The result is the candidate closest to charge sustaining: where Level 1's decisions move
-    the battery in large steps (a whole climb on the motor or not) a residual remains.
+def piece_targets(c2: l2.CostateResult, T: int):
+    """Level 2's pieces as Level 1 targets: pid (T,) the piece of each step, and dE (K,) the
+    battery energy change (J) Level 2 plans over each piece (between its limits, or to the end
+    of the route); pieces beyond `n_pieces` have no steps."""
+    K = c2.lam_lo.shape[0]
+    pid = jnp.clip(jnp.searchsorted(c2.boundaries, jnp.arange(T), side="right") - 1, 0, K - 1)
+    return pid, c2.E_bnd[1:] - c2.E_bnd[:-1]
+
+
+class Drift(NamedTuple):
+    """The plant's battery energy minus the plan's, by position: s (T+1,) positions (m, the
+    plan's step starts and the route's end) and dE (T+1,) the deviation (J) there."""
+
+    s: Any
+    dE: Any
+
+
+def no_drift(pred) -> Drift:
+    T = pred.v.shape[0]
+    return Drift(s=jnp.linspace(0.0, 1.0, T + 1, dtype=pred.v.dtype) * pred.length,
+                 dE=jnp.zeros(T + 1, pred.v.dtype))
+
+
+def plant_drift(pred, plan: Plan, res: pl.PlantResult) -> Drift:
+    """How far the plant's battery energy fell from the plan's along the route: the switches
+    the plant adds (stops, protection), the energy the open driveline costs and the speeds it
+    drives move the battery in ways the plan's model does not see."""
+    s = jnp.concatenate([jnp.where(pred.mask, pred.s, pred.length), pred.length[None]])
+    s_plant = jnp.concatenate([res.trace.s, res.final.s[None]])
+    E_plant = jnp.concatenate([res.trace.E_b, res.final.E_b[None]])
+    E_ref = jnp.concatenate([plan.E_ref, plan.E_ref[-1:]])
+    return Drift(s=s, dE=jnp.interp(s, s_plant, E_plant) - E_ref)
+
+
+def compensate(pieces, pred, bnd, drift: Drift):
+    """Piece targets that make up for a plant drift measured on an earlier run: each piece's
+    energy change is raised by what the plant lost over the same stretch of road. bnd: (K+1,)
+    step indices of the piece boundaries (padded with T)."""
+    pid, target = pieces
+    T = pred.v.shape[0]
+    i = jnp.clip(bnd, 0, T - 1)
+    s_b = jnp.where((bnd < T) & pred.mask[i], pred.s[i], pred.length)
+    d = jnp.interp(s_b, drift.s, drift.dE)
+    return pid, target - (d[1:] - d[:-1])
+
+
+def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14,
+                      gap: float = 0.05, fast=None):
+    """Level 1 that keeps Level 2's battery plan: on each Level 2 piece (pid: (T,) step ->
+    piece, target: (K,) the piece's energy change) shift lambda_b(t) by a constant, found by
+    bisection on all pieces at once, so that the DP's plan changes the battery by the piece's
+    target (charge sustaining over the last piece; a limit reached where Level 2 reaches it).
+    Where a piece's energy jumps with the shift (a guard, as in I2 of Level 2) the plans either
+    side are joined in time within the piece: the shift above the jump up to a step t_s and below
+    it after, t_s found by bisection (I2b's single switch). Each piece then takes the candidate
+    closest to its target; where Level 1's decisions move the battery in large steps (a whole
+    climb on the motor or not) a residual remains. The plans' balances count the
+    synchronisation energy their switches draw from the battery (`steps_energy`).
+    Without Level 2 pieces (pid all 0, target (1,) = [0]) this is charge sustaining.
     Returns (Level1Result, lambda_b (T,) used)."""
-    mask = pred.mask
     lo_b, hi_b = l2.LAM_BRACKET
-
-    def dE_of(lam_t):
-        r = _level1(vp, pred, lam_t, dt, params)
-        return jnp.sum(jnp.where(mask, -pt.battery_internal(vp, r.P_b) * dt, 0.0))
-
-    def shifted(d):
-        return jnp.clip(lam + d, lo_b, hi_b)
-
-    def bis(_, c):  # dE decreases as the shift d grows (cheaper battery: more discharge)
-        a, b = c
-        m = 0.5 * (a + b)
-        pos = dE_of(shifted(m)) > 0
-        return jnp.where(pos, m, a), jnp.where(pos, b, m)
-
-    a, b = jax.lax.fori_loop(0, n_bisect, bis, (jnp.asarray(-1.5, lam.dtype),
-                                                 jnp.asarray(1.5, lam.dtype)))
-    la, lb = shifted(a), shifted(b)  # dE(la) > 0 >= dE(lb) when the bracket holds
+    K = target.shape[0]
     T = pred.v.shape[0]
     k = jnp.arange(T)
+    dtype = pred.v.dtype
+
+    def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
+        r = _level1(vp, pred, lam_t, dt, params, fast)
+        dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
+        return jax.ops.segment_sum(dE, pid, K) - target
+
+    def shifted(d):  # d: (K,) shift per piece
+        return jnp.clip(lam + d[pid], lo_b, hi_b)
+
+    def bis(_, c):  # a piece's dE decreases as its shift grows (cheaper battery: discharge)
+        a, b = c
+        m = 0.5 * (a + b)
+        pos = err_of(shifted(m)) > 0
+        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+
+    half = jnp.full((K,), 1.5, dtype)
+    a, b = jax.lax.fori_loop(0, n_bisect, bis, (-half, half))
     # either side of the jump, shifted apart so that the DP, which weighs switching costs over
-    # the whole horizon, follows each side in its own part of the route
+    # the whole horizon, follows each side in its own part of the piece
     ja, jb = shifted(a - gap), shifted(b + gap)
 
-    def joined(ts):
-        return jnp.where(k < ts, jb, ja)  # discharge first, then charge
+    def joined(ts):  # ts: (K,) switching step per piece: discharge first, then charge
+        return jnp.where(k < ts[pid], jb, ja)
 
-    def bis_t(_, c):  # dE(joined(0)) = dE(la) > 0, dE(joined(T)) = dE(lb) <= 0
+    start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
+    end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
+
+    def bis_t(_, c):  # err(joined(start)) = err(ja) > 0 >= err(joined(end)) = err(jb)
         t0, t1 = c
         m = (t0 + t1) // 2
-        pos = dE_of(joined(m)) > 0
+        pos = err_of(joined(m)) > 0
         return jnp.where(pos, m, t0), jnp.where(pos, t1, m)
 
-    t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t,
-                               (jnp.asarray(0), jnp.asarray(T)))
-    cands = jnp.stack([la, lb, joined(t0), joined(t1)])
-    errs = jax.vmap(dE_of)(cands)
-    lam_t = cands[jnp.argmin(jnp.abs(errs))]
-    return _level1(vp, pred, lam_t, dt, params), lam_t
+    t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
+    cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
+    errs = jax.vmap(err_of)(cands)  # (4, K)
+    best = jnp.argmin(jnp.abs(errs), axis=0)  # (K,) candidate per piece
+    lam_t = cands[best[pid], k]
+    return _level1(vp, pred, lam_t, dt, params, fast), lam_t
 
 
 def _init_state(pred: l3.Prediction):
@@ -276,9 +387,11 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Met
     )
 
 
-def _level1(vp, pred, lam, dt, params):
+def _level1(vp, pred, lam, dt, params, fast=None):
+    """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice)."""
     m0, g0 = _init_state(pred)
-    return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params)
+    return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
+                           fast)
 
 
 def _engine_speed_nodes(route, pred, w_steps):
@@ -307,8 +420,8 @@ def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     vpc = vp.conventional()
     pred = level3(route, vpc, dt, n_steps)
     lam = _lam_conventional(vpc)
-    r1 = _level1(vpc, pred, lam, dt, params)
-    plan = make_plan(vpc, r1, lam, pred, dt, opts.tau_E)
+    r1 = _level1(vpc, pred, lam, dt, params, opts.same_open_time)
+    plan = make_plan(vpc, r1.mode, r1.gear, r1.P_b, lam, pred, dt, opts)
     res = _run_plan(route, vpc, pred, plan, plant_steps(n_steps, opts), dt)
     return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
 
@@ -370,15 +483,18 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     n_plant = plant_steps(n_steps, opts)
 
     def iteration(carry, _):
-        pred, w = carry
+        pred, w, drift = carry
         c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt,
                                max_pieces=opts.l2_pieces)
         lam_g = guard_lambda(c2, 1e-3 * vp.E_b_max) if opts.guard_sides else c2.lam
+        # Level 2's pieces, made up for the battery drift the plant showed on the last iteration
+        pieces = compensate(piece_targets(c2, pred.v.shape[0]), pred, c2.boundaries, drift)
         if opts.sustain:
-            r1, lam1 = sustaining_level1(vp, pred, lam_g, dt, params)
+            r1, lam1 = sustaining_level1(vp, pred, lam_g, dt, params, *pieces,
+                                         fast=opts.same_open_time)
         else:
-            r1, lam1 = _level1(vp, pred, lam_g, dt, params), lam_g
-        plan = make_plan(vp, r1, lam1, pred, dt, opts.tau_E)
+            r1, lam1 = _level1(vp, pred, lam_g, dt, params, opts.same_open_time), lam_g
+        plan = make_plan(vp, r1.mode, r1.gear, r1.P_b, lam1, pred, dt, opts, pieces)
         res = _run_plan(route, vp, pred, plan, n_plant, dt)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
         # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
@@ -390,10 +506,11 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         w_new = jnp.where(engine_on, r1.w, w)
         w_e = jnp.where(engine_on, jnp.clip(r1.w, vp.we_min, vp.we_max), vp.w_pred)
         pred_new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
-        return (pred_new, w_new), (it, res, pred)
+        return (pred_new, w_new, plant_drift(pred, plan, res)), (it, res, pred)
 
     w0 = jnp.full_like(pred0.v, vp.w_pred)
-    _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0), None, length=opts.n_iter)
+    _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0, no_drift(pred0)), None,
+                                         length=opts.n_iter)
     last = lambda tree: jax.tree_util.tree_map(lambda x: x[-1], tree)  # noqa: E731
     res, pred = last(ress), last(preds)
     # Level 2's own flags (at a guard, pieces exhausted, ...) stay in `extra`: the run is
@@ -563,13 +680,19 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         E1 = jnp.where(m, E1, E)
         return (E1, s1), (s1, lams[j1], jnp.where(m, cost, 0.0), E1 - E, k_Pb[j1, s1])
 
-    (E_end, _), (path, lam_path, costs, dE_path, Pb_path) = jax.lax.scan(
+    (E_end, _), (path, lam_path, costs, _, Pb_path) = jax.lax.scan(
         fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask, Pb))
     n_g = S // ps.N_MODES
     mode, gear = path // n_g, path % n_g
-    E_ref = vp.soc0 * E_max + jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(dE_path)[:-1]])
-    plan = Plan(mode=mode, gear=gear, lam=lam_path, P_b=Pb_path, E_ref=E_ref,
-                k_E=jnp.asarray(1.0 / opts.tau_E, dtype))
+    # the DP's battery path does not see the synchronisation energy its switches draw: the plan
+    # makes it up where the combined mode allows (`make_plan`)
+    plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts)
+    res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
+    # a second run whose battery power makes up for the drift the plant showed on the first
+    T = pred.v.shape[0]
+    pieces = compensate(single_piece(T, dtype), pred, jnp.array([0, T]),
+                        plant_drift(pred, plan, res))
+    plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts, pieces)
     res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
     # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
     s0 = path[0]
@@ -661,7 +784,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     dt = _check_dt(dt)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt)
-    opts = options or Options()
+    opts = resolve_options(options or Options(), vehicles)
     params = switching or sw.SwitchCostParams()
     m = _run_batch(route, vehicles, params, strategy=strategy, dt=dt, n_steps=int(n_steps),
                    opts=opts)
@@ -723,6 +846,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     if np.ndim(vp.mass):
         raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
     params = switching or sw.SwitchCostParams()
+    opts = resolve_options(opts, vp)
     n_steps = steps_for_batch(route, vp, dt)
     t0 = time.perf_counter()
     run = _run_one(route, vp, params, strategy=strategy, dt=dt, n_steps=n_steps, opts=opts)
@@ -732,6 +856,14 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     fields["wall_s"] = wall
     return Result(route=rname, strategy=strategy, fields=fields, trace=run.plant.trace,
                   prediction=run.pred, plant=run.plant, extra=run.extra)
+
+
+def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
+    """Options with `same_open_time` decided from the (concrete) vehicles when it is None."""
+    if opts.same_open_time is None:
+        same = bool(np.all(np.asarray(vehicles.dt_M) == np.asarray(vehicles.dt_G)))
+        opts = opts._replace(same_open_time=same)
+    return opts
 
 
 def _check_options(o: Options):

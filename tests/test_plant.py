@@ -148,7 +148,31 @@ def test_unfinished_route_is_reported():
 
 
 @pytest.mark.parametrize("v", [0.0, 3.0, 15.0])
-def test_rotational_energy_matches_inertias(v):
-    e = float(P.rotational_energy(VP, ps.MC, 5, v))
+def test_sync_energy_counts_each_inertia_that_spins_up(v):
     w = float(VP.gear_ratio[5] * VP.r_d * v)
-    assert e == pytest.approx(0.5 * (float(VP.I_e) + float(VP.I_m)) * w * w)
+    I_e, I_m = float(VP.I_e), float(VP.I_m)
+    e = lambda vp, a, b: float(P.sync_energy(vp, a, 5, b, 5, v))  # noqa: E731
+    assert e(VP, ps.MO, ps.MC) == pytest.approx(0.5 * (I_e + I_m) * w * w)
+    assert e(VP, ps.MC, ps.MO) == 0.0
+    # per component (Appendix C): the engine stopping does not spin the motor up
+    assert e(VP, ps.ME, ps.MM) == pytest.approx(0.5 * I_m * w * w)
+    assert e(VP.conventional(), ps.MO, ps.MC) == pytest.approx(0.5 * I_e * w * w)
+    # a downshift spins both up from gear 6 to gear 4 speeds
+    w4 = float(VP.gear_ratio[3] * VP.r_d * v)
+    assert float(P.sync_energy(VP, ps.MC, 5, ps.MC, 3, v)) == pytest.approx(
+        0.5 * (I_e + I_m) * (w4 * w4 - w * w))
+
+
+def test_path_sync_energy_matches_a_loop():
+    rng = np.random.default_rng(3)
+    T = 40
+    mode = jnp.asarray(rng.integers(0, 4, T))
+    gear = jnp.asarray(rng.integers(0, 12, T))
+    v = jnp.asarray(rng.uniform(0.0, 25.0, T))
+    got = np.asarray(P.path_sync_energy(VP, mode, gear, v))
+    want = np.zeros(T)
+    for k in range(1, T):
+        m0, g0, m1, g1 = int(mode[k - 1]), int(gear[k - 1]), int(mode[k]), int(gear[k])
+        if m1 != m0 or (g1 != g0 and m1 != ps.MO):
+            want[k] = float(P.sync_energy(VP, m0, g0, m1, g1, float(v[k]))) / float(VP.eta_m)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)

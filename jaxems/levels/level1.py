@@ -252,12 +252,17 @@ def fast_transition(xs: TransitionInputs, consts: DenseConsts) -> dp.Transition:
     return dp.Transition(relax=lambda V, x: relax_same_open_time(V, x, consts), xs=xs)
 
 
-def solve_dp(dt_M, dt_G, stage, xs, consts, dconsts, init, mask, first=False):
+def solve_dp(dt_M, dt_G, stage, xs, consts, dconsts, init, mask, first=False, fast=None):
     """Run the Level 1 DP (`dp.viterbi`, or `dp.viterbi_first` if ``first``) with the fast
-    relaxation when every configuration has dt_M == dt_G, the structured one otherwise
-    (`lax.cond`: only one runs). Both are exact; the tests compare them with the dense matrix.
+    relaxation when every configuration has dt_M == dt_G, the structured one otherwise. Both
+    are exact; the tests compare them with the dense matrix. ``fast`` (static): True / False
+    picks one when the caller knows (under `vmap` a `lax.cond` on batched values runs both
+    branches); None decides on the values (`lax.cond`: only one runs outside `vmap`).
     """
     f = dp.viterbi_first if first else dp.viterbi
+    if fast is not None:
+        tr = fast_transition(xs, dconsts) if fast else structured_transition(xs, consts)
+        return f(stage, tr, init, mask)
     fast = jnp.all(jnp.asarray(dt_M) == jnp.asarray(dt_G))
     return jax.lax.cond(
         fast,
@@ -352,13 +357,14 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
 
 
 # ------------------------------------------------------------------------------ full horizon
-def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params):
+def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None):
     TRACES["level1_full"] += 1
     tb = _tables(vp, P_d, v, grade, lam, dt, params)
     S = tb.stage.shape[1]
     n_g = S // N_MODES
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
-    r = solve_dp(vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask)
+    r = solve_dp(vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask,
+                 fast=fast)
     return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params)
 
 
