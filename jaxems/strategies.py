@@ -30,6 +30,7 @@ is the host API and `simulate_batch` the batched one used by sweeps.
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -39,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from . import dp
+from . import dp, shard
 from . import plant as pl
 from . import powertrain as pt
 from . import switching as sw
@@ -729,10 +730,12 @@ def _run_one(route, vp, params, *, strategy, dt, n_steps, opts):
     return _kernel(strategy, dt, n_steps, opts)(route, vp, params)
 
 
-@jax.jit(static_argnames=("strategy", "dt", "n_steps", "opts"))
-def _run_batch(route, vps, params, *, strategy, dt, n_steps, opts):
+@functools.lru_cache(maxsize=64)
+def _item_fn(strategy: str, dt: float, n_steps: int, opts: Options):
+    """The metrics of one vehicle, with (route, switching params) shared: `shard.map_batch`'s
+    item function (cached, so that repeated batches reuse one compilation)."""
     f = _kernel(strategy, dt, n_steps, opts)
-    return jax.vmap(lambda vp: f(route, vp, params).metrics)(vps)
+    return lambda shared, vp: f(shared[0], vp, shared[1]).metrics
 
 
 _profile_batch = jax.jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
@@ -772,13 +775,17 @@ def _fields(m: Metrics, vp) -> dict:
 
 def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
                    n_steps: int | None = None, options: Options | None = None,
-                   switching: sw.SwitchCostParams | None = None) -> dict[str, np.ndarray]:
-    """Run one strategy for one route and a batch of vehicles in one jitted, vmapped call.
+                   switching: sw.SwitchCostParams | None = None, chunk: int | None = 64,
+                   devices=None) -> dict[str, np.ndarray]:
+    """Run one strategy for one route and a batch of vehicles in one jitted call.
 
     vehicles: `VehicleParams` whose leaves all carry a leading batch axis B (`stack_vehicles`).
     n_steps: static Level 3 step count (`steps_for_batch`); pass the same value for every chunk
-    of a route so that chunks share one compilation. Returns (B,) arrays keyed as the JSON of
-    `jaxems simulate` (less route, strategy, wall_s) plus `fuel_corrected_J` and `status`.
+    of a route so that chunks share one compilation. The batch is split over `devices` (None:
+    all of the default backend; on a CPU `shard.use_host_devices` makes one per core) and runs
+    in vmapped chunks of at most `chunk` vehicles per device (None: all at once), which bounds
+    the memory (`shard.map_batch`). Returns (B,) arrays keyed as the JSON of `jaxems simulate`
+    (less route, strategy, wall_s) plus `fuel_corrected_J` and `status`.
     """
     check_strategy(strategy)
     dt = _check_dt(dt)
@@ -786,8 +793,8 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
         n_steps = steps_for_batch(route, vehicles, dt)
     opts = resolve_options(options or Options(), vehicles)
     params = switching or sw.SwitchCostParams()
-    m = _run_batch(route, vehicles, params, strategy=strategy, dt=dt, n_steps=int(n_steps),
-                   opts=opts)
+    fn = _item_fn(strategy, dt, int(n_steps), opts)
+    m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices)
     return _fields(m, VehicleParams(*(np.asarray(x) for x in vehicles)))
 
 
