@@ -1012,11 +1012,26 @@ def run_demo(out: str | Path = "out/demo", workers: int | None = 2, quiet: bool 
 # -------------------------------------------------------------------------------------- CLI
 def cmd_sweep(args) -> int:
     """`jaxems sweep`: run a fleet sweep (routes x grid x strategies) into a directory."""
+    if args.workers is None and args.scheduler is None:
+        _in_process_devices(args.devices)
     summary = run_sweep(args.sweep_file, args.out, workers=args.workers,
                         scheduler=args.scheduler, resume=args.resume, quiet=args.quiet,
                         report=not args.no_report)
     print(summary.text())
     return 0
+
+
+def _in_process_devices(n: int | None) -> None:
+    """An in-process sweep splits each chunk over `n` CPU devices (default: one per core,
+    `shard.use_host_devices`), where JAX has not started yet in this process (the command
+    line); otherwise it keeps the devices it has."""
+    from . import shard
+
+    if n is not None and n < 1:
+        raise ValueError(f"--devices: must be a whole number >= 1 (got {n})")
+    n = n or os.cpu_count() or 1
+    if shard._backends_initialised() is False:
+        shard.use_host_devices(n)
 
 
 def _add_sweep_args(p: argparse.ArgumentParser) -> None:
@@ -1032,6 +1047,8 @@ def _add_sweep_args(p: argparse.ArgumentParser) -> None:
                    help="continue an interrupted sweep in DIR (a plain rerun does the same)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write report.html")
+    p.add_argument("--devices", type=int, metavar="N", default=None,
+                   help="in-process: split each chunk over N CPU devices (default: the cores)")
     p.set_defaults(func=cmd_sweep)
 
 
