@@ -22,21 +22,24 @@ should share the work evenly: evidence of parallel devices even when the machine
 
 Paths:
 - sharded (default): `jaxems.shard.map_batch` over `strategies._kernel(strategy, dt, n_steps,
-  Options())` with the route and `SwitchCostParams()` shared, on `--devices` host devices
-  (default: all cores; `use_host_devices` runs before JAX starts), `--chunk` configurations
-  vmapped at once per device. A comma list (`--devices 1,2`) measures each count in turn and
-  reports speedup_vs_1_device (wall-time ratio).
-- plain (`--plain`): the single-device `strategies.simulate_batch` (the whole batch in one
-  vmap), in a process with one device. `--compare-plain` measures both and reports
-  speedup_vs_plain and the largest relative difference of fuel_J between the paths.
+  opts)` (opts: `Options()` resolved for the vehicles as `simulate_batch` does) with the route
+  and `SwitchCostParams()` shared, on `--devices` host devices (default: all cores;
+  `use_host_devices` runs before JAX starts), `--chunk` configurations vmapped at once per
+  device. A comma list (`--devices 1,2`) measures each count in turn and reports
+  speedup_vs_1_device (wall-time ratio).
+- plain (`--plain`): `strategies.simulate_batch(..., chunk=None, devices=1)`, the whole batch
+  in one vmap on one device (the path before sharding), in a process with one device.
+  `--compare-plain` measures both and reports speedup_vs_plain and the largest relative
+  difference of fuel_J between the paths.
 
 With --json one object on stdout:
 
     {"route": .., "batch": .., "precision": .., "devices": [..], "chunk": .., "machine": {..},
-     "command": .., "strategies": {NAME: {"configs_per_s": .., "compile_s": .., "peak_rss_MB":
-     .., "median_s": .., "s_per_config": .., "cpu_s_per_config": .., "times_s": [..], ..,
-     ["by_devices": {"1": {..}, "2": {..}}, "speedup_vs_1_device": ..,]
-     ["plain": {..}, "speedup_vs_plain": .., "max_rel_diff_fuel_vs_plain": ..]}},
+     "code": {"commit": .., "jaxems_dirty": ..}, "command": ..,
+     "strategies": {NAME: {"configs_per_s": .., "compile_s": .., "peak_rss_MB": ..,
+       "median_s": .., "s_per_config": .., "cpu_s_per_config": .., "times_s": [..], ..,
+       ["by_devices": {"1": {..}, "2": {..}}, "speedup_vs_1_device": ..,]
+       ["plain": {..}, "speedup_vs_plain": .., "max_rel_diff_fuel_vs_plain": ..]}},
      ["scaling": {NAME: {"length": [..], "batch": [..], "length_ratio": {..},
                          "batch_ratio": {..}}}]}
 
@@ -160,11 +163,14 @@ def measure(spec: dict) -> dict:
     vps = vehicles(B, dtype)
     n_steps = st.steps_for_batch(route, vps)
 
+    opts = st.Options()
+    if hasattr(st, "resolve_options"):  # static choices made from the vehicles, as
+        opts = st.resolve_options(opts, vps)  # simulate_batch makes them
     if spec["mode"] == "plain":
-        def call():
-            return st.simulate_batch(route, vps, name, n_steps=n_steps)
+        def call():  # the whole batch in one vmap on one device
+            return st.simulate_batch(route, vps, name, n_steps=n_steps, chunk=None, devices=1)
     else:
-        kern = st._kernel(name, 1.0, n_steps, st.Options())
+        kern = st._kernel(name, 1.0, n_steps, opts)
         params = sw.SwitchCostParams()
         vp_host = VehicleParams(*(np.asarray(x) for x in vps))
 
@@ -229,6 +235,21 @@ def run_spec(spec: dict, in_process: bool) -> dict:
           f"cores {res['cores_busy']:.2f}  peak RSS {res['peak_rss_MB']:7.0f} MB  "
           f"load {res['loadavg_1min'][0]:.1f}", file=sys.stderr, flush=True)
     return res
+
+
+def code_version() -> dict:
+    """The git commit of the tree measured and whether jaxems/ had uncommitted changes."""
+    root = Path(__file__).resolve().parents[1]
+
+    def git(*a):
+        try:
+            return subprocess.run(["git", *a], cwd=root, capture_output=True, text=True,
+                                  timeout=10).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            return ""
+
+    return {"commit": git("rev-parse", "--short", "HEAD"),
+            "jaxems_dirty": bool(git("status", "--porcelain", "--", "jaxems"))}
 
 
 def _public(res: dict) -> dict:
@@ -339,6 +360,7 @@ def main(argv=None) -> int:
            "devices": args.devices_list, "chunk": args.chunk,
            "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                        "loadavg_start": list(os.getloadavg())},
+           "code": code_version(),
            "command": "python benchmarks/bench_sweep.py " + " ".join(
                sys.argv[1:] if argv is None else argv),
            "strategies": {}}

@@ -19,6 +19,14 @@ run before JAX's backend starts (before the first array, `jax.devices()` or jitt
 - `shared` arguments (a route, switching-cost parameters) are the same for every item and are
   replicated to every device.
 
+Outputs are gathered: when the batch was padded, the result is sliced back to B inside the
+jitted program and every device holds the whole (B, ...) result, which is what per-item metrics
+need; a function with large per-item outputs (traces) should return less.
+
+On this 2-core CPU one XLA device already spreads parts of a kernel over both cores (XLA's
+intra-op threads); two host devices keep both busy for the rest (see docs/bench/). Memory grows
+with the items in flight: devices x chunk.
+
 Compilation: the jitted program is cached per (fn, chunk, devices, with/without shared), and
 `jax.jit` caches per argument shapes and dtypes, so repeated calls with the same function
 object and shapes do not trace again. Pass the same function object each time (a lambda built
