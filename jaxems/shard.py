@@ -65,6 +65,12 @@ def _backends_initialised() -> bool | None:
     return bool(fn())
 
 
+def backends_started() -> bool | None:
+    """Whether JAX's backends have started in this process (after that, the CPU device count
+    is fixed); None when this JAX version cannot tell. Never starts them itself."""
+    return _backends_initialised()
+
+
 def host_device_count() -> int:
     """Number of CPU devices of the running backend (starts the backend if needed)."""
     return len(jax.devices("cpu"))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxems.shard import chunk_plan, map_batch, use_host_devices
+from jaxems.shard import backends_started, chunk_plan, map_batch, use_host_devices
 
 TRACES = [0]
 
@@ -115,6 +115,7 @@ def test_bad_arguments():
 def test_use_host_devices_after_start(monkeypatch):
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
     have = len(jax.devices("cpu"))  # the backend has started
+    assert backends_started() is True
     with pytest.raises(RuntimeError, match="already started"):
         use_host_devices(have + 1)
     assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"  # unchanged
@@ -126,7 +127,8 @@ def test_use_host_devices_after_start(monkeypatch):
 CHILD = textwrap.dedent("""
     import os
     import numpy as np
-    from jaxems.shard import map_batch, use_host_devices
+    from jaxems.shard import backends_started, map_batch, use_host_devices
+    assert backends_started() is False  # importing jaxems does not start JAX's backend
     use_host_devices(2)
     assert "--xla_force_host_platform_device_count=2" in os.environ["XLA_FLAGS"]
     assert "--xla_cpu_enable_fast_math=false" in os.environ["XLA_FLAGS"]
