@@ -1030,7 +1030,7 @@ def _in_process_devices(n: int | None) -> None:
     if n is not None and n < 1:
         raise ValueError(f"--devices: must be a whole number >= 1 (got {n})")
     n = n or os.cpu_count() or 1
-    if shard._backends_initialised() is False:
+    if shard.backends_started() is False:
         shard.use_host_devices(n)
 
 
