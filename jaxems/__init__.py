@@ -35,6 +35,7 @@ from .levels.powersplit import (
 from .levels.velocity import Prediction, Profile, predict_batch, predict_velocity
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, vehicle_axes
 from .route import Route, RouteError, pad_routes
+from .shard import map_batch, use_host_devices
 from .strategies import STRATEGIES, Options, Result, simulate, simulate_batch
 from .switching import SwitchCostParams, eps_G, eps_M, switch_cost_matrix
 
@@ -45,11 +46,11 @@ __all__ = [
     "bisect_costate", "closed_form_mode", "costate_batch", "costate_product", "dense_transition",
     "eps_G", "eps_M", "guards", "hamiltonian_table", "interior_region", "level1_batch",
     "level1_full", "level1_mpc", "level2_horizon", "list_routes", "load_route", "load_sweep",
-    "load_vehicle",
+    "load_vehicle", "map_batch",
     "minimal_switching", "mode_gear_split", "optimal_mode_gear", "pad_routes", "predict_batch",
     "predict_velocity", "route_name", "run_sweep", "simulate", "simulate_batch", "solve_costate",
-    "stack_vehicles", "status_names", "switch_cost_matrix", "vehicle_axes", "viterbi",
-    "viterbi_first",
+    "stack_vehicles", "status_names", "switch_cost_matrix", "use_host_devices", "vehicle_axes",
+    "viterbi", "viterbi_first",
 ]
 
 
