@@ -94,8 +94,9 @@ def test_chunk_plan_bounds(B, n, chunk):
     total = n * k * c
     assert total >= B
     assert total - B < n * k + n  # padding: less than one item per chunk, plus rounding
-    if chunk is not None:
-        assert 1 <= c <= chunk
+    # a chunk never exceeds the requested size (None: one chunk of each device's share)
+    assert 1 <= c <= (chunk if chunk is not None else -(-B // n))
+    assert chunk is not None or k == 1
 
 
 def test_bad_arguments():
