@@ -127,6 +127,21 @@ def forward_acceleration(vp: VehicleParams, v, grade, w_pred):
     return jnp.minimum(vp.a_max, (traction_limit(vp, v, w_pred) - f0) / vp.mass)
 
 
+def _limits(route: Route, vp: VehicleParams):
+    """(mask, ds, is_stop, vlim, floor) of one route: vlim = min(vmax, v0), 0 at stops and V_BIG
+    on padding; floor = 0 at stops, min(V_CRAWL, vlim) elsewhere. Shapes (N,) and ()."""
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    mask = jnp.asarray(route.mask)
+    ds = jnp.asarray(route.ds, dtype)
+    is_stop = (jnp.asarray(route.stop) > 0) & mask
+    vlim = jnp.minimum(jnp.asarray(route.vmax, dtype), vp.v_cruise)
+    vlim = jnp.where(is_stop, 0.0, vlim)
+    vlim = jnp.where(mask, vlim, V_BIG)
+    floor = jnp.where(is_stop, 0.0, jnp.minimum(V_CRAWL, vlim))
+    return mask, ds, is_stop, vlim, floor
+
+
 def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
     """Level 3 on the distance grid for ONE route and ONE vehicle (jit/vmap-able).
 
@@ -136,13 +151,7 @@ def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
     grade = jnp.asarray(route.grade)
     N = grade.shape[-1]
     dtype = grade.dtype
-    mask = jnp.asarray(route.mask)
-    ds = jnp.asarray(route.ds, dtype)
-    is_stop = (jnp.asarray(route.stop) > 0) & mask
-    vlim = jnp.minimum(jnp.asarray(route.vmax, dtype), vp.v_cruise)
-    vlim = jnp.where(is_stop, 0.0, vlim)
-    vlim = jnp.where(mask, vlim, V_BIG)
-    floor = jnp.where(is_stop, 0.0, jnp.minimum(V_CRAWL, vlim))
+    mask, ds, _, vlim, floor = _limits(route, vp)
     w = jnp.broadcast_to(jnp.asarray(vp.w_pred if w_pred is None else w_pred, dtype), (N,))
 
     def fwd(v, xs):
@@ -169,7 +178,26 @@ def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
     _, v_b = jax.lax.scan(bwd, vlim[-1], vlim[:-1], reverse=True)
     v_bwd = jnp.concatenate([v_b, vlim[-1:]])
     v = jnp.where(mask, jnp.minimum(v_fwd, v_bwd), 0.0)
+    return profile_from_speed(route, vp, v, v_fwd, v_bwd, feasible=~jnp.any(stalled))
 
+
+def profile_from_speed(
+    route: Route, vp: VehicleParams, v, v_fwd=None, v_bwd=None, feasible=True
+) -> Profile:
+    """A `Profile` of ONE route from any node speeds v: (N,) m/s (jit/vmap-able).
+
+    Computes the timing exactly as `velocity_profile` does (cell time 2 ds / (v_i + v_i+1),
+    the sum floored at V_CRAWL; stop times at stop nodes): t_arr, t_dep, trip_time, and vlim,
+    s, mask, length. v is zeroed on padding; v_fwd, v_bwd: (N,) the passes to record (default
+    v); feasible: () bool to record. `resample` then turns the profile into a time grid.
+    """
+    grade = jnp.asarray(route.grade)
+    N = grade.shape[-1]
+    dtype = grade.dtype
+    mask, ds, _, vlim, _ = _limits(route, vp)
+    v = jnp.where(mask, jnp.asarray(v, dtype), 0.0)
+    v_fwd = v if v_fwd is None else jnp.asarray(v_fwd, dtype)
+    v_bwd = v if v_bwd is None else jnp.asarray(v_bwd, dtype)
     cell_valid = mask[1:]
     dt_cell = jnp.where(cell_valid, 2.0 * ds / jnp.maximum(v[:-1] + v[1:], V_CRAWL), 0.0)
     stop = jnp.where(mask, jnp.asarray(route.stop, dtype), 0.0)
@@ -189,7 +217,7 @@ def velocity_profile(route: Route, vp: VehicleParams, w_pred=None) -> Profile:
         mask=mask,
         trip_time=trip_time,
         length=jnp.asarray(route.length, dtype),
-        feasible=~jnp.any(stalled),
+        feasible=jnp.asarray(feasible, bool),
     )
 
 
