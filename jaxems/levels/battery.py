@@ -23,15 +23,19 @@ Monotonicity: for every step, P_bi*(lambda_b) is non-decreasing in lambda_b (par
 minimisation of P_f + (-lambda_b) P_bi), so E_b(t_f) is non-increasing in lambda_b: a more
 negative lambda_b makes battery energy dearer and the EMS discharges less. Bisection on a
 bracket [lam_min, lam_max] (default [-6, -0.3], an argument) with a fixed number of iterations
-inside jit finds the solution; at lam = -6 the EMS charges as hard as the motor allows, at -0.3
+inside jit finds the solution (it stops early where every bracket is one ulp wide: float32
+needs about 28 halvings); at lam = -6 the EMS charges as hard as the motor allows, at -0.3
 it discharges as hard as it can, so the bracket spans the reachable range of E_b(t_f).
 
 I1 (section 5.1, battery limits): the horizon is a list of pieces with fixed boundary values
 (start E_b0, end E_b_end, interior boundaries at E_min or E_max). All pieces are bisected
 together, each with its own constant lambda_b (one pass over the T steps per iteration: the
 per-step costate is gathered from the piece index, the end values are segment sums). While a
-piece's trajectory leaves [E_min, E_max], the largest violation is split off: the violated
-limit becomes the end value of the first and the start value of the second piece. One
+piece's trajectory leaves [E_min, E_max], its largest violation is split off: the violated
+limit becomes the end value of the first and the start value of the second piece. Pieces are
+independent between their boundaries, so every violating piece is split in the same round
+(what splitting only the largest violation overall per round reaches after as many rounds as
+splits); when fewer pieces remain than pieces violate, the largest violations go first. One
 refinement of the paper's outline: when the violated stretch reaches back to the start of its
 piece and that start is on the same limit (the constraint arc simply goes on), the start moves
 forward to the violation instead of a new piece being added. Pieces at a guard count as
@@ -335,8 +339,13 @@ def _solve_pieces(
     _, S_hi, _ = _piece_paths(dE_hi, pid, bnd, E_start, jnp.zeros((K,), bool), E_max)
     sat = jax.ops.segment_max(S_hi[1:] - E_max, pid, num_segments=K) > tol_v
 
-    def body(_, c):
-        lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = c
+    def cond(c):  # stop once no bracket can shrink (float32: after about 28 halvings)
+        i, lo, hi = c[:3]
+        mid = 0.5 * (lo + hi)
+        return (i < n_iter) & jnp.any((mid > lo) & (mid < hi))
+
+    def body(c):
+        i, lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = c
         mid = 0.5 * (lo + hi)
         dE_m, Ef_m = run(mid[pid], dt)
         end = _piece_ends(dE_m, pid, bnd, E_start, sat, E_max)
@@ -344,13 +353,16 @@ def _solve_pieces(
         up = jnp.where(sat, end >= tgt - tol_v, end > tgt)
         upk = up[pid]
         return (
-            jnp.where(up, mid, lo), jnp.where(up, hi, mid),
+            i + 1, jnp.where(up, mid, lo), jnp.where(up, hi, mid),
             jnp.where(upk, dE_m, dE_lo), jnp.where(upk, Ef_m, Ef_lo),
             jnp.where(upk, dE_hi, dE_m), jnp.where(upk, Ef_hi, Ef_m),
         )
 
-    lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = jax.lax.fori_loop(
-        0, n_iter, body, (lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi)
+    # n_iter halvings, fewer where the bracket already is one ulp wide: the halving is then
+    # idempotent (mid rounds to lo, where the end stays above target, or to hi), so stopping
+    # changes nothing
+    _, lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = jax.lax.while_loop(
+        cond, body, (jnp.int32(0), lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi)
     )
     end_p = _piece_ends(dE_lo, pid, bnd, E_start, sat, E_max)
     end_m = _piece_ends(dE_hi, pid, bnd, E_start, sat, E_max)
@@ -446,15 +458,14 @@ class CostateResult(NamedTuple):
     max_violation: jax.Array
 
 
-def _violations(over, under, bnd, E_min, E_max, skip):
-    """Largest violation of [E_min, E_max] at interior E indices; (value, index, limit)."""
-    T1 = over.shape[0]
-    j = jnp.arange(T1)
+def _violations(sol: _Pieces, bnd):
+    """(T+1,) violation of [E_min, E_max] at each E index (>= 0): zero at the boundaries and
+    in pieces that miss their end value (splitting cannot repair them)."""
+    j = jnp.arange(sol.over.shape[0])
     is_bnd = jnp.any(j[:, None] == bnd[None, :], axis=1)
-    viol = jnp.maximum(jnp.maximum(over, under), 0.0)
-    viol = jnp.where(is_bnd | skip, 0.0, viol)
-    i = jnp.argmax(viol)
-    return viol[i], i, jnp.where(over[i] > under[i], E_max, E_min)
+    skip = jnp.concatenate([jnp.zeros((1,), bool), sol.miss[sol.pid]])
+    viol = jnp.maximum(jnp.maximum(sol.over, sol.under), 0.0)
+    return jnp.where(is_bnd | skip, 0.0, viol)
 
 
 def _solve_core(
@@ -475,33 +486,45 @@ def _solve_core(
         tol=tol, n_iter=n_iter,
     )
 
-    def violation(sol, bnd, E_bnd):
-        # skip pieces that miss their end value: splitting cannot repair them
-        skip = jnp.concatenate([jnp.zeros((1,), bool), sol.miss[sol.pid]])
-        return _violations(sol.over, sol.under, bnd, E_min, E_max, skip)
-
     def n_used(bnd):
         return jnp.sum(bnd[1:] > bnd[:-1]).astype(jnp.int32)
 
     def refine(bnd, E_bnd, sol):
-        """Split (or move) at the largest violation of the solved pieces."""
-        _, tc, lim = violation(sol, bnd, E_bnd)
-        tc = tc.astype(jnp.int32)
-        # the piece holding E index tc, and whether the violated stretch reaches back to its
-        # start on a boundary at the same limit: the constraint arc goes on, so that boundary
-        # moves forward to tc instead of a new piece being added (forward only: no cycles)
-        p = sol.pid[jnp.clip(tc - 1, 0, T - 1)]
-        a, b = bnd[p], bnd[p + 1]
+        """Split (or move) every piece at its own largest violation, largest first while
+        pieces remain. Pieces are independent between boundaries, so this reaches what one
+        split per round (the largest violation overall) reaches, in fewer rounds."""
         j = jnp.arange(T + 1)
-        side = jnp.where(lim >= E_max, sol.E > E_max + tol_v, sol.E < E_min - tol_v)
-        back = jnp.all(jnp.where((j > a) & (j <= tc), side, True))
-        mv = ~sol.sat[p] & (p > 0) & (E_bnd[p] == lim) & back & (tc < b)
-        moved = bnd.at[p].set(tc)
-        b2 = jnp.concatenate([bnd, tc[None]])
-        e2 = jnp.concatenate([E_bnd, lim[None].astype(dtype)])
+        q = sol.pid[jnp.clip(j - 1, 0, T - 1)]  # the piece holding E index j (its end at j)
+        viol = _violations(sol, bnd)
+        vq = jax.ops.segment_max(viol, q, num_segments=K)  # (K,) largest per piece
+        at_max = (viol == vq[q]) & (viol > 0)
+        tc = jax.ops.segment_min(jnp.where(at_max, j, T + 1), q, num_segments=K)
+        has = (vq > tol_v) & (tc <= T)
+        tcc = jnp.clip(tc, 0, T)
+        upper = sol.over[tcc] > sol.under[tcc]
+        lim = jnp.where(upper, E_max, E_min).astype(dtype)
+        # whether the violated stretch reaches back to the piece's start on a boundary at the
+        # same limit: the constraint arc goes on, so that boundary moves forward to tc instead
+        # of a new piece being added (forward only: no cycles)
+        big = jnp.int32(T + 2)
+        off_up = jax.ops.segment_min(jnp.where((j > 0) & ~(sol.E > E_max + tol_v), j, big), q,
+                                     num_segments=K)
+        off_dn = jax.ops.segment_min(jnp.where((j > 0) & ~(sol.E < E_min - tol_v), j, big), q,
+                                     num_segments=K)
+        back = jnp.where(upper, off_up, off_dn) > tc
+        p = jnp.arange(K)
+        mv = has & ~sol.sat & (p > 0) & (E_bnd[:K] == lim) & back & (tc < bnd[1:])
+        split = has & ~mv
+        # the largest violations first while pieces remain
+        vr, vc = vq[None, :], vq[:, None]
+        beats = (vr > vc) | ((vr == vc) & (p[None, :] < p[:, None]))
+        rank = jnp.sum(split[None, :] & beats, axis=1)
+        split = split & (rank < K - n_used(bnd))
+        moved = jnp.concatenate([jnp.where(mv, tc, bnd[:K]), bnd[K:]]).astype(bnd.dtype)
+        b2 = jnp.concatenate([moved, jnp.where(split, tc, T).astype(bnd.dtype)])
+        e2 = jnp.concatenate([E_bnd, jnp.where(split, lim, E_bnd[K])])
         order = jnp.argsort(b2, stable=True)
-        ins_b, ins_e = b2[order][: K + 1], e2[order][: K + 1]
-        return jnp.where(mv, moved, ins_b), jnp.where(mv, E_bnd, ins_e)
+        return b2[order][: K + 1], e2[order][: K + 1]
 
     # one traced solve: each round solves the current pieces, then refines them unless done
     def cond(c):
@@ -510,7 +533,7 @@ def _solve_core(
     def body(c):
         bnd, E_bnd, _, _, i = c
         sol = solve(bnd, E_bnd)
-        vmax, _, _ = violation(sol, bnd, E_bnd)
+        vmax = jnp.max(_violations(sol, bnd))
         done = ~((vmax > tol_v) & (n_used(bnd) < K) & (i < 3 * K))
         nb, ne = refine(bnd, E_bnd, sol)
         bnd = jnp.where(done, bnd, nb)
@@ -524,7 +547,7 @@ def _solve_core(
         cond, body, (bnd, E_bnd, sol0, jnp.bool_(False), jnp.int32(0))
     )
 
-    vmax, _, _ = violation(sol, bnd, E_bnd)
+    vmax = jnp.max(_violations(sol, bnd))
     miss = sol.miss
     used = bnd[1:] > bnd[:-1]
     status = jnp.int32(OK)
