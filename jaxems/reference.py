@@ -58,7 +58,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from .levels.powersplit import ENGINE_CONNECTED, MO, MOTOR_CONNECTED, N_MODES
-from .levels.velocity import V_CRAWL, steps_for
+from .levels.velocity import P_PENALTY_W, V_CRAWL, steps_for
 from .params import VehicleParams
 from .route import Route, n_nodes
 from .switching import STRANDED_J, SwitchCostParams
@@ -909,3 +909,116 @@ __all__ = [
     "ref_time_grid", "ref_traction_table", "reference_plan", "road_load", "split_table",
     "viterbi_path",
 ]
+
+
+# ------------------------------------------------------------------ eco-driving (Level 3 DP)
+def ref_hamiltonian_min(vp: VehicleParams, P_d, v, lam, n_grid: int = 9, levels: int = 14):
+    """Hard minimum over modes and gears of H (W) by `split_table`'s brute force, for arrays
+    P_d, v of one shape; where nothing can deliver P_d: P_PENALTY_W + 2 max(P_d, 0) / eta_e
+    (the convention of `velocity.soft_min_hamiltonian`)."""
+    f = _veh(vp)
+    P_d = np.asarray(P_d, float)
+    v = np.asarray(v, float)
+    flat_P, flat_v = P_d.ravel(), v.ravel()
+    H = np.empty(flat_P.shape)
+    for a in range(0, flat_P.size, 8192):
+        tab = split_table(vp, flat_P[a:a + 8192], flat_v[a:a + 8192], lam, n_grid, levels).H
+        H[a:a + 8192] = tab.reshape(tab.shape[0], -1).min(axis=1)
+    H = H.reshape(P_d.shape)
+    return np.where(np.isfinite(H), H, P_PENALTY_W + 2.0 * np.maximum(P_d, 0.0) / f.eta_e)
+
+
+def ref_eco_cell(vp: VehicleParams, v0, v1, grade, ds):
+    """The eco-driving cell model in NumPy: (P_d W, v_mean m/s, dt s) of cells driven from
+    speed v0 to v1 (arrays) at constant acceleration over ds metres: dt = 2 ds / (v0 + v1)
+    (the sum floored at V_CRAWL), P_d = (kinetic energy change + road-load work) / dt with
+    F_0 = k_air v^2 + m g (c_r cos alpha + sin alpha) and v^2 linear in s, v_mean = ds / dt."""
+    f = vp if isinstance(vp, SimpleNamespace) else _veh(vp)
+    vsum = np.maximum(v0 + v1, V_CRAWL)
+    dt = 2.0 * ds / vsum
+    k_air = 0.5 * f.c_w * f.area * f.rho
+    work = (k_air * 0.5 * (v0 * v0 + v1 * v1) + road_load(f, 0.0, grade)) * ds
+    P_d = (0.5 * f.mass * (v1 * v1 - v0 * v0) + work) / dt
+    return P_d, 0.5 * vsum, dt
+
+
+def _a_fwd_array(f, v, grade, w):
+    """`a_fwd` for arrays v (scalar grade and w)."""
+    p_max = np.interp(w, f.te_max_w, f.te_max) * w
+    f_max = np.minimum(p_max / np.maximum(v, 1e-6), np.max(f.te_max) * f.gear_ratio[0] * f.r_d)
+    return np.minimum(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
+
+
+class RefEco(NamedTuple):
+    """`ref_eco_dp`'s optimum: v: (n,) node speeds (m/s); cost: J (energy + lambda_t x trip
+    time, stops included); energy: J (sum H dt); trip_time: s; envelope: (n,) Level 3's
+    speeds (the upper bound)."""
+
+    v: np.ndarray
+    cost: float
+    energy: float
+    trip_time: float
+    envelope: np.ndarray
+
+
+def ref_eco_dp(route: Route, vp: VehicleParams, lambda_t, lam_b, v_grid, h_min=None, w=None,
+               acc_tol: float = 1e-9) -> RefEco:
+    """Eco-driving by dynamic programming over nodes x speeds (the reference of
+    `velocity.optimize_velocity`).
+
+    At node i the speed is one of the grid speeds v_grid (m/s) inside [floor_i, env_i], or
+    env_i itself: env is Level 3's profile (`ref_profile`), floor 0 at stops and
+    min(V_CRAWL, env) elsewhere; the first and last node are fixed to env. A transition
+    (cell i, speed a -> b) is allowed when -a_min - acc_tol <= (b^2 - a^2) / (2 ds) <=
+    a_fwd(a, grade_i, w_i) + acc_tol and costs (H + lambda_t) dt from `ref_eco_cell`, H the
+    hard minimum over modes and gears at (P_d, v_mean): `h_min(P_d, v_mean)` (arrays in,
+    array out; default `ref_hamiltonian_min` at lam_b). Forward cost-to-come with a loop over
+    cells, vectorised over (from, to) speed pairs; back-pointers give the path.
+    """
+    f = _veh(vp)
+    if h_min is None:
+        h_min = lambda P, v: ref_hamiltonian_min(vp, P, v, lam_b)  # noqa: E731
+    n = n_nodes(route)
+    ds = float(route.ds)
+    g = np.asarray(route.grade, float)[:n]
+    stop = np.asarray(route.stop, float)[:n]
+    ww = np.full(n, f.w_pred) if w is None else np.broadcast_to(np.asarray(w, float), (n,))
+    env, _, _, _ = ref_profile(route, vp, w)
+    floor = np.where(stop > 0, 0.0, np.minimum(V_CRAWL, env))
+    grid = np.asarray(v_grid, float)
+    cand = []
+    for i in range(n):
+        if i in (0, n - 1) or stop[i] > 0:
+            c = np.array([env[i]])
+        else:
+            inside = grid[(grid >= floor[i]) & (grid < env[i])]
+            c = np.unique(np.concatenate([inside, [env[i]]]))
+        cand.append(c)
+    J = np.zeros(1)
+    back = []
+    for i in range(n - 1):
+        a, b = cand[i][:, None], cand[i + 1][None, :]
+        acc = (b * b - a * a) / (2.0 * ds)
+        ok = (acc <= _a_fwd_array(f, a, g[i], ww[i]) + acc_tol) & (acc >= -f.a_min - acc_tol)
+        P_d, v_mean, dt = ref_eco_cell(f, a, b, g[i], ds)
+        P_d, v_mean, dt = np.broadcast_arrays(P_d, v_mean, dt)
+        cost = np.full(ok.shape, np.inf)
+        if ok.any():
+            H = h_min(P_d[ok], v_mean[ok])
+            cost[ok] = (np.asarray(H) + lambda_t) * dt[ok]
+        tot = J[:, None] + cost
+        k = np.argmin(tot, axis=0)
+        J = tot[k, np.arange(tot.shape[1])]
+        back.append(k)
+    if not np.isfinite(J[0]):
+        raise ValueError("ref_eco_dp: no feasible path on this grid")
+    idx = [0]
+    for k in reversed(back):
+        idx.append(int(k[idx[-1]]))
+    idx = idx[::-1]
+    v = np.array([cand[i][j] for i, j in enumerate(idx)])
+    _, trip = ref_pieces(route, v)
+    P_d, v_mean, dt = ref_eco_cell(f, v[:-1], v[1:], g[:-1], ds)
+    energy = float(np.sum(np.asarray(h_min(P_d, v_mean)) * dt))
+    return RefEco(v=v, cost=float(J[0]) + lambda_t * float(stop.sum()), energy=energy,
+                  trip_time=float(trip), envelope=env)

@@ -45,6 +45,7 @@ Road load follows `powertrain.road_load` (resistance positive): F_0 = F_air + F_
 
 from __future__ import annotations
 
+import collections
 import math
 from collections.abc import Sequence
 from typing import Any, NamedTuple
@@ -56,10 +57,12 @@ import numpy as np
 from .. import powertrain as pt
 from ..params import VehicleParams, stack_vehicles
 from ..route import Route, pad_routes
+from .powersplit import mode_gear_split
 
 V_CRAWL = 0.5  # m/s: lowest speed away from stops
 V_BIG = 1.0e3  # m/s: "no limit" on padding nodes
 STEP_BUCKET = 256  # time steps are rounded up to a multiple of this
+TRACES: collections.Counter = collections.Counter()  # trace counts of the jitted entry points
 
 
 class Profile(NamedTuple):
@@ -451,3 +454,650 @@ def energy_summary(pred: Prediction) -> dict:
         "feasible": bool(pred.feasible),
         "steps": int(m.sum()),
     }
+
+
+# =============================================================================================
+# Eco-driving: velocity optimisation on the distance grid (the paper's "future work", section 8)
+# =============================================================================================
+TAU_W = 100.0  # W: default temperature of the soft minimum over modes and gears
+P_PENALTY_W = 1.0e6  # W: Hamiltonian of a cell whose demand no (mode, gear) can deliver
+N_STEPS = 1500  # default Adam steps of `optimize_velocity`
+LEARNING_RATE = 0.3  # m/s: default first step size
+FINAL_LR_RATIO = 3e-3  # the step size decays to this fraction over the steps
+ADAM_B2 = 0.99  # Adam's second-moment decay (shorter memory than optax's 0.999: kinks)
+N_BISECT = 12  # default bisection steps of `match_trip_time`
+N_CAPS = 24  # uniform speed caps tried as starting points by `optimize_velocity`
+BIG_V2 = 1.0e12  # (m/s)^2: "no constraint" in the min-plus scans of `project_speeds`
+LAMBDA_T_RANGE = (1.0e2, 1.0e7)  # J/s: bracket of `match_trip_time` (searched in log scale)
+MATCH_RTOL = 5e-3  # relative trip-time tolerance of `match_trip_time`
+
+# status bit flags of an `EcoResult`
+ECO_OK = 0
+ECO_STALL = 1  # Level 3's envelope stalled (crawl floor used): the acceleration limit is broken
+ECO_NONFINITE = 2  # the objective was not finite: Level 3's profile is returned
+ECO_TARGET_FAST = 4  # match_trip_time: target faster than the fastest optimum (the envelope)
+ECO_TARGET_SLOW = 8  # match_trip_time: target slower than the optimum at the smallest lambda_t
+ECO_TARGET_MISSED = 16  # match_trip_time: the trip time is off the target by more than 0.5 %
+ECO_STATUS_NAMES = {
+    ECO_STALL: "level3-stall",
+    ECO_NONFINITE: "non-finite",
+    ECO_TARGET_FAST: "target-too-fast",
+    ECO_TARGET_SLOW: "target-too-slow",
+    ECO_TARGET_MISSED: "target-missed",
+}
+
+
+def eco_status_names(code: int) -> list[str]:
+    """Names of the flags set in an `EcoResult.status` (host-side)."""
+    return [name for bit, name in ECO_STATUS_NAMES.items() if int(code) & bit]
+
+
+class EcoCells(NamedTuple):
+    """The cell model of the eco-driving objective; shapes (N-1,) per cell i (nodes i, i+1).
+
+    P_d: mean driveline power over the cell (W); v_mean: mean speed ds / dt (m/s); dt: cell time
+    (s, 0 on padding); H: minimised Hamiltonian (W; soft or hard minimum over modes and gears,
+    P_PENALTY_W + 2 P_d / eta_e where nothing can deliver P_d); energy: H dt (J, fuel
+    equivalent, 0 on padding); valid: bool, a cell of the route (not padding).
+    """
+
+    P_d: Any
+    v_mean: Any
+    dt: Any
+    H: Any
+    energy: Any
+    valid: Any
+
+
+class EcoResult(NamedTuple):
+    """Result of `optimize_velocity` for one route and one vehicle (leading batch axis B from
+    `optimize_velocity_batch`).
+
+    profile: `Profile` of the optimised speeds (v: (N,) m/s; v_fwd, v_bwd: Level 3's passes,
+    whose minimum is the envelope); v_level3: (N,) Level 3's speeds (the upper bound);
+    cost: () J, surrogate objective (soft minimum over modes/gears, temperature tau) of the
+    returned speeds; cost_exact: () J, the same with the exact (hard) minimum; energy_J: () J,
+    fuel-equivalent energy sum(H dt) with the hard minimum (fuel + |lambda_b| x battery energy);
+    trip_time: () s; lambda_t: () J/s the time price used; acc_violation: () m/s^2, the
+    largest acceleration-limit violation of the optimiser's iterate before the feasibility
+    restoration (the returned profile is restored); grad_norm: () J/(m/s), norm of the
+    projected gradient at that iterate; history: (n_steps,) J, penalised soft objective per
+    step; status: () int32 bit flags (ECO_*).
+    """
+
+    profile: Profile
+    v_level3: Any
+    cost: Any
+    cost_exact: Any
+    energy_J: Any
+    trip_time: Any
+    lambda_t: Any
+    acc_violation: Any
+    grad_norm: Any
+    history: Any
+    status: Any
+
+
+def soft_min_hamiltonian(H, P_d, vp: VehicleParams, tau=None):
+    """Soft minimum of H over modes and gears: (..., 4, G) -> (...,) (W).
+
+    tau: temperature (W) of -tau log sum exp(-H / tau), or None for the exact minimum. Entries
+    with H = +inf (infeasible) are masked out before exp/log (double where: finite values and
+    finite gradients everywhere); where no entry is feasible (P_d beyond every mode's
+    capability, P_d > 0) the result is P_PENALTY_W + 2 P_d / eta_e, finite and increasing in
+    P_d. The soft minimum lies in [min H - tau log(4 G), min H].
+    """
+    flat = H.reshape(H.shape[:-2] + (-1,))
+    ok = jnp.isfinite(flat)
+    any_ok = jnp.any(ok, axis=-1)
+    safe = jnp.where(ok, flat, 0.0)
+    h_min = jnp.min(jnp.where(ok, safe, jnp.inf), axis=-1)
+    h_min = jnp.where(any_ok, h_min, 0.0)
+    if tau is None:
+        h = h_min
+    else:
+        ref = jax.lax.stop_gradient(h_min)  # the shift cancels exactly in value and gradient
+        e = jnp.where(ok, jnp.exp(-(safe - ref[..., None]) / tau), 0.0)
+        s = jnp.sum(e, axis=-1)
+        h = ref - tau * jnp.log(jnp.where(any_ok, s, 1.0))
+    penalty = P_PENALTY_W + 2.0 * jnp.maximum(P_d, 0.0) / vp.eta_e
+    return jnp.where(any_ok, h, penalty)
+
+
+class EcoTable(NamedTuple):
+    """The minimised Hamiltonian tabulated over (speed, power) for fast eco-driving steps.
+
+    H: (n_v, n_P) W, the soft (or hard) minimum over modes and gears of `mode_gear_split`'s H
+    at speeds v0 + i dv and powers P0 + j dP; P_hi: () W, above which nothing can deliver the
+    demand (P_PENALTY_W + 2 P / eta_e is used there, as `soft_min_hamiltonian` does).
+    Below P0 the table is constant in P (the motor and the engine brake are saturated, the
+    service brakes take the rest), so powers are clamped there.
+    """
+
+    H: Any
+    v0: Any
+    dv: Any
+    P0: Any
+    dP: Any
+    P_hi: Any
+
+
+TABLE_SIZE = (160, 384)  # default (speeds, powers) of an `EcoTable`
+
+
+def eco_table(vp: VehicleParams, lam_b, v_top, tau=None, n_v: int = 160, n_P: int = 384):
+    """`EcoTable` of ONE vehicle at costate lam_b for speeds V_CRAWL/2 .. v_top (m/s).
+
+    n_v, n_P static; vp, lam_b, v_top, tau arrays (jit/vmap-able). The power range runs from
+    -(P_m_max + engine-brake power) to the engine's full-load power plus P_m_max (5 % margins).
+    """
+    dtype = jnp.result_type(v_top, vp.mass, float)
+    _, p_max = pt.engine_power_limits(vp, vp.te_max_w)
+    p_brake, _ = pt.engine_power_limits(vp, vp.te_min_w)
+    P_hi = 1.05 * (jnp.max(p_max) + vp.pm_max * vp.has_motor)
+    P0 = -1.05 * (vp.pm_max * vp.has_motor - jnp.min(p_brake))
+    v0 = jnp.asarray(0.5 * V_CRAWL, dtype)
+    dv = (jnp.asarray(v_top, dtype) - v0) / (n_v - 1)
+    dP = (P_hi - P0) / (n_P - 1)
+    vs = v0 + dv * jnp.arange(n_v, dtype=dtype)
+    Ps = P0 + dP * jnp.arange(n_P, dtype=dtype)
+    lam = jnp.asarray(lam_b, dtype)
+
+    def row(v):
+        H = jax.vmap(mode_gear_split, in_axes=(None, 0, None, None))(vp, Ps, v, lam).H
+        return soft_min_hamiltonian(H, Ps, vp, tau)
+
+    H = jax.lax.map(row, vs)
+    return EcoTable(H=H, v0=v0, dv=dv, P0=P0, dP=dP, P_hi=P_hi)
+
+
+def table_hamiltonian(tab: EcoTable, vp: VehicleParams, P_d, v):
+    """Bilinear interpolation of an `EcoTable` at (P_d, v) (arrays of one shape) -> H (W)."""
+    n_v, n_P = tab.H.shape
+    x = jnp.clip((v - tab.v0) / tab.dv, 0.0, n_v - 1.0)
+    y = jnp.clip((P_d - tab.P0) / tab.dP, 0.0, n_P - 1.0)
+    i = jnp.clip(jnp.floor(x).astype(jnp.int32), 0, n_v - 2)
+    j = jnp.clip(jnp.floor(y).astype(jnp.int32), 0, n_P - 2)
+    fx, fy = x - i, y - j
+    h = ((1 - fx) * ((1 - fy) * tab.H[i, j] + fy * tab.H[i, j + 1])
+         + fx * ((1 - fy) * tab.H[i + 1, j] + fy * tab.H[i + 1, j + 1]))
+    penalty = P_PENALTY_W + 2.0 * jnp.maximum(P_d, 0.0) / vp.eta_e
+    return jnp.where(P_d > tab.P_hi, penalty, h)
+
+
+def eco_cells(route: Route, vp: VehicleParams, v, lam_b, tau=None, table=None) -> EcoCells:
+    """The eco-driving cell model for node speeds v: (N,) m/s (ONE route, ONE vehicle).
+
+    Within cell i the acceleration is constant, a = (v_i+1^2 - v_i^2) / (2 ds), the cell takes
+    dt = 2 ds / (v_i + v_i+1) (the sum floored at V_CRAWL, as `profile_from_speed`), and the mean
+    driveline power is the exact work over the cell divided by dt, as `resample` computes it:
+    P_d = (0.5 m (v_i+1^2 - v_i^2) + int F_0 ds) / dt, int F_0 ds = (k_air (v_i^2 + v_i+1^2) / 2
+    + F_roll + F_grade) ds (`powertrain.road_load`, v^2 linear in s). The cell's Hamiltonian is
+    the (soft, tau in W; hard for None) minimum over modes and gears of Level 1's
+    `mode_gear_split(vp, P_d, v_mean, lam_b).H` at the mean speed v_mean = ds / dt, or, with
+    an `EcoTable` `table` (built at lam_b and tau), its bilinear interpolation (fast).
+    """
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    mask = jnp.asarray(route.mask)
+    ds = jnp.asarray(route.ds, dtype)
+    v = jnp.where(mask, jnp.asarray(v, dtype), 0.0)
+    vi, vn = v[:-1], v[1:]
+    valid = mask[1:]
+    vsum = jnp.maximum(vi + vn, V_CRAWL)
+    dt = 2.0 * ds / vsum
+    k_air = 0.5 * vp.c_w * vp.area * vp.rho
+    f_rg = pt.road_load(vp, 0.0, grade[:-1])  # rolling + grade force (N)
+    work = (k_air * 0.5 * (vi * vi + vn * vn) + f_rg) * ds
+    dke = 0.5 * vp.mass * (vn * vn - vi * vi)
+    P_d = (dke + work) / dt
+    v_mean = 0.5 * vsum
+    if table is None:
+        lam = jnp.asarray(lam_b, dtype)
+        H_tab = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
+        h = soft_min_hamiltonian(H_tab, P_d, vp, tau)
+    else:
+        h = table_hamiltonian(table, vp, P_d, v_mean)
+    return EcoCells(
+        P_d=P_d,
+        v_mean=v_mean,
+        dt=jnp.where(valid, dt, 0.0),
+        H=h,
+        energy=jnp.where(valid, h * dt, 0.0),
+        valid=valid,
+    )
+
+
+def _stop_time(route: Route, dtype):
+    return jnp.sum(jnp.where(jnp.asarray(route.mask), jnp.asarray(route.stop, dtype), 0.0))
+
+
+def eco_cost(route: Route, vp: VehicleParams, v, lambda_t, lam_b, tau, table=None):
+    """Surrogate eco-driving objective (J) of node speeds v: (N,) m/s; returns ().
+
+    sum over cells of H dt + lambda_t x trip time (cell times plus the stops, a constant), with
+    H the soft minimum (temperature tau, W) over modes and gears of Level 1's Hamiltonian
+    H = P_f - lambda_b P_bi at the cell's mean power (see `eco_cells`). lambda_t: J/s (>= 0),
+    the price of a second; lam_b: Level 2's battery costate (< 0). Differentiable in v.
+    table: an `EcoTable` at (lam_b, tau) to interpolate H from instead (see `eco_cells`).
+    """
+    c = eco_cells(route, vp, v, lam_b, tau, table)
+    dtype = c.dt.dtype
+    time = jnp.sum(c.dt) + _stop_time(route, dtype)
+    return jnp.sum(c.energy) + jnp.asarray(lambda_t, dtype) * time
+
+
+def eco_cost_exact(route: Route, vp: VehicleParams, v, lambda_t, lam_b):
+    """`eco_cost` with the exact minimum over modes and gears (tau -> 0); returns () J."""
+    return eco_cost(route, vp, v, lambda_t, lam_b, None)
+
+
+def speed_bounds(route: Route, vp: VehicleParams, w_pred=None):
+    """Bounds of the eco-driving speeds: (lo, hi, level3), lo, hi: (N,) m/s, level3: Profile.
+
+    hi is Level 3's predicted speed (vmax, v0, traction forward, comfort braking backward, the
+    start and end conditions); lo is 0 at stops, min(V_CRAWL, hi) elsewhere. The first and the
+    last node are fixed to Level 3's (lo = hi: standstill at a stop, the limit for a flying start
+    or a free end), so the kinetic energy at both ends, and the energy balance against Level 3,
+    are the same (a free end left open would be slowed down for free). Padding: 0.
+    """
+    prof = velocity_profile(route, vp, w_pred)
+    mask, _, _, _, floor = _limits(route, vp)
+    hi = prof.v
+    lo = jnp.where(mask, jnp.minimum(floor, hi), 0.0)
+    lo = jnp.where(_last_node(mask), hi, lo.at[0].set(hi[0]))
+    return lo, hi, prof
+
+
+def acceleration_limits(route: Route, vp: VehicleParams, v, w_pred=None):
+    """Acceleration a and its limits per cell: (a, a_hi, a_lo), each (N-1,) m/s^2.
+
+    a = (v_i+1^2 - v_i^2) / (2 ds); a_hi = forward_acceleration(vp, v_i, grade_i, w_i) (full
+    traction of the engine at w_pred behind a CVT, capped at a_max, as Level 3's forward pass);
+    a_lo = -vp.a_min (comfort braking; a_min is a positive number).
+    """
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    N = grade.shape[-1]
+    ds = jnp.asarray(route.ds, dtype)
+    w = jnp.broadcast_to(jnp.asarray(vp.w_pred if w_pred is None else w_pred, dtype), (N,))
+    a = (v[1:] ** 2 - v[:-1] ** 2) / (2.0 * ds)
+    a_hi = forward_acceleration(vp, v[:-1], grade[:-1], w[:-1])
+    a_lo = jnp.broadcast_to(-jnp.asarray(vp.a_min, dtype), a.shape)
+    return a, a_hi, a_lo
+
+
+def acceleration_violation(route: Route, vp: VehicleParams, v, w_pred=None):
+    """How far each cell breaks the acceleration limits: (N-1,) m/s^2, >= 0 (0 on padding)."""
+    a, a_hi, a_lo = acceleration_limits(route, vp, v, w_pred)
+    viol = jnp.maximum(a - a_hi, 0.0) + jnp.maximum(a_lo - a, 0.0)
+    return jnp.where(jnp.asarray(route.mask)[1:], viol, 0.0)
+
+
+def restore_feasible(route: Route, vp: VehicleParams, v, w_pred=None):
+    """The largest speeds below v: (N,) that meet the acceleration limits (m/s).
+
+    Level 3's passes with v as the limit: forward v_i+1 <= sqrt(v_i^2 + 2 a_hi(v_i) ds), then
+    backward v_i <= sqrt(v_i+1^2 + 2 a_min ds); the crawl floor and the stops are kept as in
+    Level 3 (a profile the truck cannot drive above the floor stays flagged by Level 3's
+    `feasible`). A profile that meets the limits is returned unchanged.
+    """
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    N = grade.shape[-1]
+    mask, ds, _, _, floor = _limits(route, vp)
+    w = jnp.broadcast_to(jnp.asarray(vp.w_pred if w_pred is None else w_pred, dtype), (N,))
+    v = jnp.where(mask, jnp.asarray(v, dtype), V_BIG)  # padding: no limit
+
+    def fwd(vc, xs):
+        g, w_i, lim_next, floor_next = xs
+        a = forward_acceleration(vp, vc, g, w_i)
+        v_next = jnp.minimum(lim_next, jnp.sqrt(jnp.maximum(vc * vc + 2.0 * a * ds, 0.0)))
+        v_next = jnp.maximum(v_next, jnp.minimum(floor_next, lim_next))
+        return v_next, v_next
+
+    _, v_f = jax.lax.scan(fwd, v[0], (grade[:-1], w[:-1], v[1:], floor[1:]))
+    v_f = jnp.concatenate([v[:1], v_f])
+
+    def bwd(vc, xs):
+        lim, cell = xs  # cell: node i + 1 is on the route (not padding)
+        v_i = jnp.where(cell, jnp.minimum(lim, jnp.sqrt(vc * vc + 2.0 * vp.a_min * ds)), lim)
+        return v_i, v_i
+
+    _, v_b = jax.lax.scan(bwd, v_f[-1], (v_f[:-1], mask[1:]), reverse=True)
+    return jnp.where(mask, jnp.concatenate([v_b, v_f[-1:]]), 0.0)
+
+
+def _min_plus_scan(A, B, reverse=False):
+    """x_i = min(A_i, x_prev + B_i) along the array (the previous element is i - 1, or i + 1
+    when reverse), x_first = A_first (B_first is ignored): an associative scan of the maps
+    x -> min(A, x + B), composed as min(A2, A1 + B2), B1 + B2."""
+    B = B.at[-1 if reverse else 0].set(BIG_V2)
+
+    def combine(e, f):  # e: earlier in scan order, f: later
+        return jnp.minimum(f[0], e[0] + f[1]), e[1] + f[1]
+
+    return jax.lax.associative_scan(combine, (A, B), reverse=reverse)[0]
+
+
+def project_speeds(route: Route, vp: VehicleParams, v, v_ref, lo, hi, w_pred=None):
+    """Feasible speeds near v: (N,) m/s, within [lo, hi] and the acceleration limits.
+
+    In v^2 (linear in s at constant acceleration) with the traction limit taken at v_ref
+    (c_i = 2 ds a_fwd(v_ref_i, grade_i); the previous iterate in `optimize_velocity`) and
+    b = 2 ds a_min: first the lower bounds are made reachable (L_i = max(lo_i^2,
+    L_i+1 - c_i) backward: the fixed end can be reached; L_i+1 = max(L_i+1, L_i - b) forward:
+    the fixed start can brake to them), then v^2 is clipped to [L, hi^2] and lowered by
+    Level 3's passes, x_i+1 = min(x_i+1, x_i + c_i) forward and x_i = min(x_i, x_i+1 + b)
+    backward. All four are associative min-plus scans (parallel over the nodes). The result
+    meets the limits of the traction at v_ref exactly; with v_ref = the result, exactly
+    (`restore_feasible` is the sequential, exact counterpart that only lowers).
+    """
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    N = grade.shape[-1]
+    mask = jnp.asarray(route.mask)
+    ds = jnp.asarray(route.ds, dtype)
+    w = jnp.broadcast_to(jnp.asarray(vp.w_pred if w_pred is None else w_pred, dtype), (N,))
+    cell = mask[1:]
+    c = jnp.where(cell, 2.0 * ds * forward_acceleration(vp, v_ref[:-1], grade[:-1], w[:-1]),
+                  BIG_V2)
+    b = jnp.where(cell, 2.0 * ds * vp.a_min, BIG_V2)
+    pad = jnp.zeros(1, dtype)
+    # lower bounds: reach the end (backward), brake from the start (forward); negated min-plus
+    neg_L = _min_plus_scan(-(lo * lo), jnp.concatenate([c, pad]), reverse=True)
+    neg_L = _min_plus_scan(neg_L, jnp.concatenate([pad, b]))
+    L = -neg_L
+    x = jnp.clip(jnp.clip(v, lo, hi) ** 2, L, hi * hi)
+    x = _min_plus_scan(x, jnp.concatenate([pad, c]))
+    x = _min_plus_scan(x, jnp.concatenate([b, pad]), reverse=True)
+    x = jnp.maximum(x, jnp.minimum(L, hi * hi))
+    return jnp.where(mask, jnp.sqrt(jnp.maximum(x, 0.0)), 0.0)
+
+
+class _EcoSetup(NamedTuple):
+    lo: Any
+    hi: Any
+    level3: Profile
+    table: Any
+
+
+def _eco_setup(route, vp, lam_b, tau, w_pred, table_size) -> _EcoSetup:
+    lo, hi, l3 = speed_bounds(route, vp, w_pred)
+    table = None
+    if table_size is not None:
+        n_v, n_P = table_size
+        table = eco_table(vp, lam_b, jnp.max(hi) + 0.1, tau, n_v, n_P)
+    return _EcoSetup(lo, hi, l3, table)
+
+
+def optimize_velocity(
+    route: Route,
+    vp: VehicleParams,
+    lambda_t,
+    lam_b,
+    *,
+    n_steps: int = N_STEPS,
+    learning_rate=LEARNING_RATE,
+    final_lr_ratio=FINAL_LR_RATIO,
+    tau=TAU_W,
+    w_pred=None,
+    v_init=None,
+    table_size: tuple[int, int] | None = TABLE_SIZE,
+) -> EcoResult:
+    """Eco-driving: node speeds that minimise fuel-equivalent energy + lambda_t x trip time.
+
+    ONE route and ONE vehicle; pure, jit- and vmap-able. n_steps and table_size are static;
+    lambda_t (J/s, >= 0, the price of a second), lam_b (Level 2's costate, < 0, about -2),
+    learning_rate (m/s), final_lr_ratio, tau (W), w_pred (rad/s, () or (N,); Level 3's engine
+    speed), v_init ((N,) m/s or None) and the vehicle's leaves are arrays, so new values do not
+    recompile.
+
+    Problem: minimise `eco_cost(route, vp, v, lambda_t, lam_b, tau)` over the node speeds v:
+    (N,) subject to
+      - bounds lo <= v <= hi (`speed_bounds`): hi = Level 3's own profile (so the optimum is
+        only ever slower than Level 3, where that pays), lo = 0 at stops and V_CRAWL elsewhere,
+        the first and last node fixed to Level 3's;
+      - acceleration limits per cell: -a_min <= (v_i+1^2 - v_i^2) / (2 ds) <= a_fwd(v_i, grade_i)
+        (`acceleration_limits`; a_fwd as Level 3's forward pass).
+    Method: the soft-minimised Hamiltonian is tabulated once over (speed, power) (`eco_table`,
+    table_size = (n_v, n_P); None evaluates `mode_gear_split` per cell and step: exact, about
+    100 x slower), then n_steps of projected Adam (optax) from Level 3's profile (or v_init),
+    the learning rate (m/s per step) decaying exponentially from learning_rate to
+    final_lr_ratio x learning_rate. Every iterate is PROJECTED onto the constraints
+    (`project_speeds`: the bounds, and the acceleration limits with the traction limit taken at
+    the previous iterate), so no penalty is needed and the speeds can move as a whole (slowing
+    down ahead of a crest along a climb at the traction limit). The iterate of least objective
+    is kept; `restore_feasible` then removes what the lagged traction limit left
+    (acc_violation: the largest violation before that, m/s^2). cost, cost_exact and energy_J
+    are evaluated per cell with `mode_gear_split` (no table). If the objective is not finite,
+    Level 3's profile is returned with status ECO_NONFINITE.
+
+    Returns `EcoResult` (profile leaves (N,), history (n_steps,), the rest ()).
+    """
+    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size)
+    return _eco_solve(route, vp, lambda_t, lam_b, setup, n_steps=n_steps,
+                      learning_rate=learning_rate, final_lr_ratio=final_lr_ratio, tau=tau,
+                      w_pred=w_pred, v_init=v_init)
+
+
+def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learning_rate,
+               final_lr_ratio, tau, w_pred, v_init) -> EcoResult:
+    import optax  # noqa: PLC0415 (optax is only needed here)
+
+    lo, hi, l3, table = setup
+    dtype = hi.dtype
+    lambda_t = jnp.asarray(lambda_t, dtype)
+    tau = jnp.asarray(tau, dtype)
+
+    def loss(v):
+        return eco_cost(route, vp, v, lambda_t, lam_b, tau, table)
+
+    if v_init is None:  # Level 3's profile under the best of N_CAPS uniform speed caps
+        caps = jnp.linspace(1.0, 1.0 / N_CAPS, N_CAPS, dtype=dtype) * jnp.max(hi)
+        cands = jax.vmap(lambda c: project_speeds(route, vp, jnp.minimum(hi, c), hi, lo, hi,
+                                                  w_pred))(caps)
+        f_c = jax.vmap(loss)(cands)
+        v0 = cands[jnp.argmin(jnp.where(jnp.isfinite(f_c), f_c, jnp.inf))]
+    else:
+        v0 = jnp.asarray(v_init, dtype)
+    v0 = project_speeds(route, vp, v0, v0, lo, hi, w_pred)
+
+    def projected(v, g):  # the gradient without the components the bounds block
+        return jnp.where(((v <= lo) & (g > 0)) | ((v >= hi) & (g < 0)), 0.0, g)
+
+    lr0 = jnp.asarray(learning_rate, dtype)
+    ratio = jnp.asarray(final_lr_ratio, dtype)
+
+    def sched(count):  # exponential decay from lr0 to lr0 x ratio over n_steps (arrays)
+        return lr0 * ratio ** (jnp.asarray(count, dtype) / max(n_steps, 1))
+
+    opt = optax.adam(sched, b1=0.9, b2=ADAM_B2)
+    vg = jax.value_and_grad(loss)
+
+    def step(carry, _):
+        v, st, best_v, best_f, best_g = carry
+        f, g = vg(v)
+        g = jnp.where(jnp.isfinite(g), g, 0.0)
+        better = jnp.isfinite(f) & (f < best_f)
+        best_v = jnp.where(better, v, best_v)
+        best_f = jnp.where(better, f, best_f)
+        best_g = jnp.where(better, jnp.linalg.norm(projected(v, g)), best_g)
+        upd, st = opt.update(g, st, v)
+        v = project_speeds(route, vp, v + upd, v, lo, hi, w_pred)
+        return (v, st, best_v, best_f, best_g), f
+
+    inf = jnp.asarray(jnp.inf, dtype)
+    carry0 = (v0, opt.init(v0), v0, inf, inf)
+    (v_last, _, best_v, best_f, best_g), hist = jax.lax.scan(step, carry0, None, length=n_steps)
+    f_last, g_last = vg(v_last)
+    last_better = jnp.isfinite(f_last) & (f_last < best_f)
+    v_opt = jnp.where(last_better, v_last, best_v)
+    g_norm = jnp.where(last_better, jnp.linalg.norm(projected(v_last, g_last)), best_g)
+    f_opt = jnp.minimum(f_last, best_f)
+    finite = jnp.isfinite(f_opt) & jnp.all(jnp.isfinite(v_opt))
+    v_opt = jnp.where(finite, v_opt, hi)
+    acc_viol = jnp.max(acceleration_violation(route, vp, v_opt, w_pred))
+    v_ret = restore_feasible(route, vp, v_opt, w_pred)
+    prof = profile_from_speed(route, vp, v_ret, l3.v_fwd, l3.v_bwd, l3.feasible)
+    cells = eco_cells(route, vp, v_ret, lam_b, None)
+    energy = jnp.sum(cells.energy)
+    status = jnp.where(l3.feasible, ECO_OK, ECO_STALL) | jnp.where(finite, 0, ECO_NONFINITE)
+    return EcoResult(
+        profile=prof,
+        v_level3=hi,
+        cost=eco_cost(route, vp, v_ret, lambda_t, lam_b, tau),
+        cost_exact=energy + lambda_t * prof.trip_time,
+        energy_J=energy,
+        trip_time=prof.trip_time,
+        lambda_t=lambda_t,
+        acc_violation=acc_viol,
+        grad_norm=g_norm,
+        history=hist,
+        status=status.astype(jnp.int32),
+    )
+
+
+def match_trip_time(
+    route: Route,
+    vp: VehicleParams,
+    target_trip_time,
+    lam_b,
+    *,
+    n_bisect: int = N_BISECT,
+    n_steps: int = N_STEPS,
+    learning_rate=LEARNING_RATE,
+    final_lr_ratio=FINAL_LR_RATIO,
+    tau=TAU_W,
+    w_pred=None,
+    lambda_t_range=LAMBDA_T_RANGE,
+    table_size: tuple[int, int] | None = TABLE_SIZE,
+):
+    """The time price lambda_t (J/s) whose eco-driving optimum takes target_trip_time (s).
+
+    ONE route and ONE vehicle; pure, jit- and vmap-able; n_bisect, n_steps, table_size static.
+    Bisection on log(lambda_t) over lambda_t_range = (lo, hi) J/s (the optimised trip time
+    decreases as lambda_t grows), n_bisect steps, each a full `optimize_velocity` from Level 3's
+    profile (the table is built once); the evaluated lambda_t whose trip time is closest to the
+    target is returned, so (lambda_t, result) is what `optimize_velocity(..., lambda_t)` gives.
+    Returns (lambda_t: () J/s, `EcoResult`). status flags: ECO_TARGET_FAST when the target is
+    below the fastest trip found (no profile under Level 3's envelope is that fast; Level 3's
+    own trip time is the limit), ECO_TARGET_SLOW when it is above the slowest (lambda_t at the
+    bottom of the range), ECO_TARGET_MISSED when the trip time is off by more than
+    MATCH_RTOL (0.5 %) for another reason (bisection noise of a non-convex problem).
+    """
+    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size)
+    dtype = setup.hi.dtype
+    target = jnp.asarray(target_trip_time, dtype)
+    u_lo = jnp.log(jnp.asarray(lambda_t_range[0], dtype))
+    u_hi = jnp.log(jnp.asarray(lambda_t_range[1], dtype))
+
+    def solve(lt):
+        return _eco_solve(route, vp, lt, lam_b, setup, n_steps=n_steps,
+                          learning_rate=learning_rate, final_lr_ratio=final_lr_ratio, tau=tau,
+                          w_pred=w_pred, v_init=None)
+
+    def body(carry, _):
+        lo, hi, best, best_err = carry
+        mid = 0.5 * (lo + hi)
+        res = solve(jnp.exp(mid))
+        slow = res.trip_time > target  # too slow: a second must cost more
+        lo = jnp.where(slow, mid, lo)
+        hi = jnp.where(slow, hi, mid)
+        err = jnp.abs(res.trip_time - target)
+        better = err < best_err
+        best = jax.tree_util.tree_map(lambda a, b: jnp.where(better, a, b), res, best)
+        return (lo, hi, best, jnp.minimum(err, best_err)), None
+
+    first = solve(jnp.exp(0.5 * (u_lo + u_hi)))
+    err0 = jnp.abs(first.trip_time - target)
+    slow0 = first.trip_time > target
+    lo = jnp.where(slow0, 0.5 * (u_lo + u_hi), u_lo)
+    hi = jnp.where(slow0, u_hi, 0.5 * (u_lo + u_hi))
+    (_, _, best, _), _ = jax.lax.scan(body, (lo, hi, first, err0), None,
+                                      length=max(n_bisect - 1, 0))
+    rel = (best.trip_time - target) / target
+    flags = jnp.where(rel > MATCH_RTOL, ECO_TARGET_FAST, 0) | jnp.where(
+        rel < -MATCH_RTOL, ECO_TARGET_SLOW, 0)
+    missed = jnp.abs(rel) > MATCH_RTOL
+    flags = flags | jnp.where(missed & (flags == 0), ECO_TARGET_MISSED, 0)
+    best = best._replace(status=(best.status | flags).astype(jnp.int32))
+    return best.lambda_t, best
+
+
+# ----------------------------------------------------------------------------- batched
+def _optimize_batch(routes, vehicles, lambda_t, lam_b, w, learning_rate, final_lr_ratio, tau,
+                    n_steps, table_size):
+    TRACES["optimize_velocity_batch"] += 1
+
+    def one(route, vp, lt, lb, w_i):
+        return optimize_velocity(route, vp, lt, lb, n_steps=n_steps, learning_rate=learning_rate,
+                                 final_lr_ratio=final_lr_ratio, tau=tau, w_pred=w_i,
+                                 table_size=table_size)
+
+    return jax.vmap(one)(routes, vehicles, lambda_t, lam_b, w)
+
+
+_optimize_vmap = jax.jit(_optimize_batch, static_argnames=("n_steps", "table_size"))
+
+
+def optimize_velocity_batch(
+    routes: Route | Sequence[Route],
+    vehicles: VehicleParams | Sequence[VehicleParams],
+    lambda_t,
+    lam_b,
+    *,
+    n_steps: int = N_STEPS,
+    learning_rate=LEARNING_RATE,
+    final_lr_ratio=FINAL_LR_RATIO,
+    tau=TAU_W,
+    w_pred=None,
+    table_size: tuple[int, int] | None = TABLE_SIZE,
+) -> EcoResult:
+    """`optimize_velocity` for a batch through one jitted `vmap`; equals a loop of single calls.
+
+    routes: a list of `Route`s (padded with `pad_routes`) or a padded batch (leaves (B, N));
+    vehicles: a list or stacked batch of B vehicles, or one vehicle; a single route with a batch
+    of vehicles is accepted too (pairing as `predict_batch`: member b is route b with vehicle b;
+    for every combination, repeat them). lambda_t, lam_b: () or (B,); w_pred: None (each
+    vehicle's w_pred) or rad/s broadcastable to (B, N). New values of any of these reuse the
+    compilation (TRACES["optimize_velocity_batch"] counts traces). Returns `EcoResult` with a
+    leading axis B.
+    """
+    if not isinstance(routes, Route):
+        routes = pad_routes(list(routes))
+    if not isinstance(vehicles, VehicleParams):
+        vehicles = stack_vehicles(list(vehicles))
+    br = _batch_size(routes.ds)
+    bv = _batch_size(vehicles.mass)
+    if br is None and bv is None:
+        raise ValueError(
+            "optimize_velocity_batch: neither routes nor vehicles are a batch; use "
+            "optimize_velocity"
+        )
+    if br is not None and bv is not None and br != bv:
+        raise ValueError(
+            f"optimize_velocity_batch: {br} routes but {bv} vehicles (pair them one to one)"
+        )
+    B = br if br is not None else bv
+    if br is None:
+        routes = Route(*(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in routes))
+    if bv is None:
+        vehicles = VehicleParams(
+            *(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in vehicles)
+        )
+    N = np.shape(routes.grade)[-1]
+    dtype = np.result_type(np.asarray(routes.grade).dtype, np.float32)
+    if w_pred is None:
+        w = np.broadcast_to(np.asarray(vehicles.w_pred, dtype)[:, None], (B, N))
+    else:
+        w = np.broadcast_to(np.asarray(w_pred, dtype), (B, N))
+    lt = np.broadcast_to(np.asarray(lambda_t, dtype), (B,))
+    lb = np.broadcast_to(np.asarray(lam_b, dtype), (B,))
+    for name, x in (("lambda_t", lt), ("lam_b", lb)):
+        if not np.all(np.isfinite(x)):
+            raise ValueError(f"optimize_velocity_batch: {name} must be finite (got {x})")
+    if np.any(lt < 0):
+        raise ValueError(f"optimize_velocity_batch: lambda_t must be >= 0 J/s (got {lt})")
+    return _optimize_vmap(routes, vehicles, lt, lb, w, learning_rate, final_lr_ratio, tau,
+                          n_steps=n_steps, table_size=table_size)
