@@ -344,7 +344,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
 
     t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
     cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
-    errs = jax.vmap(err_of)(cands)  # (4, K)
+    errs = jax.lax.map(err_of, cands)  # (4, K), one DP at a time (memory)
     best = jnp.argmin(jnp.abs(errs), axis=0)  # (K,) candidate per piece
     lam_t = cands[best[pid], k]
     return _level1(vp, pred, lam_t, dt, params, fast), lam_t
