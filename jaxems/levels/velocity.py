@@ -466,7 +466,6 @@ LEARNING_RATE = 0.3  # m/s: default first step size
 FINAL_LR_RATIO = 3e-3  # the step size decays to this fraction over the steps
 ADAM_B2 = 0.99  # Adam's second-moment decay (shorter memory than optax's 0.999: kinks)
 N_BISECT = 12  # default bisection steps of `match_trip_time`
-N_CAPS = 24  # uniform speed caps tried as starting points by `optimize_velocity`
 BIG_V2 = 1.0e12  # (m/s)^2: "no constraint" in the min-plus scans of `project_speeds`
 LAMBDA_T_RANGE = (1.0e2, 1.0e7)  # J/s: bracket of `match_trip_time` (searched in log scale)
 MATCH_RTOL = 5e-3  # relative trip-time tolerance of `match_trip_time`
@@ -625,6 +624,28 @@ def table_hamiltonian(tab: EcoTable, vp: VehicleParams, P_d, v):
     return jnp.where(P_d > tab.P_hi, penalty, h)
 
 
+def _cell_model(route: Route, vp: VehicleParams, v):
+    """(P_d, v_mean, dt, valid) per cell, (N-1,) each, for node speeds v (see `eco_cells`)."""
+    grade = jnp.asarray(route.grade)
+    dtype = grade.dtype
+    mask = jnp.asarray(route.mask)
+    ds = jnp.asarray(route.ds, dtype)
+    v = jnp.where(mask, jnp.asarray(v, dtype), 0.0)
+    vi, vn = v[:-1], v[1:]
+    vsum = jnp.maximum(vi + vn, V_CRAWL)
+    dt = 2.0 * ds / vsum
+    k_air = 0.5 * vp.c_w * vp.area * vp.rho
+    f_rg = pt.road_load(vp, 0.0, grade[:-1])  # rolling + grade force (N)
+    work = (k_air * 0.5 * (vi * vi + vn * vn) + f_rg) * ds
+    dke = 0.5 * vp.mass * (vn * vn - vi * vi)
+    return (dke + work) / dt, 0.5 * vsum, dt, mask[1:]
+
+
+def _cells(P_d, v_mean, dt, valid, h) -> EcoCells:
+    return EcoCells(P_d=P_d, v_mean=v_mean, dt=jnp.where(valid, dt, 0.0), H=h,
+                    energy=jnp.where(valid, h * dt, 0.0), valid=valid)
+
+
 def eco_cells(route: Route, vp: VehicleParams, v, lam_b, tau=None, table=None) -> EcoCells:
     """The eco-driving cell model for node speeds v: (N,) m/s (ONE route, ONE vehicle).
 
@@ -637,35 +658,24 @@ def eco_cells(route: Route, vp: VehicleParams, v, lam_b, tau=None, table=None) -
     `mode_gear_split(vp, P_d, v_mean, lam_b).H` at the mean speed v_mean = ds / dt, or, with
     an `EcoTable` `table` (built at lam_b and tau), its bilinear interpolation (fast).
     """
-    grade = jnp.asarray(route.grade)
-    dtype = grade.dtype
-    mask = jnp.asarray(route.mask)
-    ds = jnp.asarray(route.ds, dtype)
-    v = jnp.where(mask, jnp.asarray(v, dtype), 0.0)
-    vi, vn = v[:-1], v[1:]
-    valid = mask[1:]
-    vsum = jnp.maximum(vi + vn, V_CRAWL)
-    dt = 2.0 * ds / vsum
-    k_air = 0.5 * vp.c_w * vp.area * vp.rho
-    f_rg = pt.road_load(vp, 0.0, grade[:-1])  # rolling + grade force (N)
-    work = (k_air * 0.5 * (vi * vi + vn * vn) + f_rg) * ds
-    dke = 0.5 * vp.mass * (vn * vn - vi * vi)
-    P_d = (dke + work) / dt
-    v_mean = 0.5 * vsum
+    P_d, v_mean, dt, valid = _cell_model(route, vp, v)
     if table is None:
-        lam = jnp.asarray(lam_b, dtype)
+        lam = jnp.asarray(lam_b, P_d.dtype)
         H_tab = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
         h = soft_min_hamiltonian(H_tab, P_d, vp, tau)
     else:
         h = table_hamiltonian(table, vp, P_d, v_mean)
-    return EcoCells(
-        P_d=P_d,
-        v_mean=v_mean,
-        dt=jnp.where(valid, dt, 0.0),
-        H=h,
-        energy=jnp.where(valid, h * dt, 0.0),
-        valid=valid,
-    )
+    return _cells(P_d, v_mean, dt, valid, h)
+
+
+def _soft_and_exact(route, vp, v, lam_b, tau):
+    """(soft, exact) `EcoCells` of node speeds v from one evaluation of the (mode, gear) table."""
+    P_d, v_mean, dt, valid = _cell_model(route, vp, v)
+    lam = jnp.asarray(lam_b, P_d.dtype)
+    H_tab = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
+    soft = soft_min_hamiltonian(H_tab, P_d, vp, tau)
+    hard = soft_min_hamiltonian(H_tab, P_d, vp, None)
+    return _cells(P_d, v_mean, dt, valid, soft), _cells(P_d, v_mean, dt, valid, hard)
 
 
 def _stop_time(route: Route, dtype):
@@ -815,6 +825,23 @@ def project_speeds(route: Route, vp: VehicleParams, v, v_ref, lo, hi, w_pred=Non
     return jnp.where(mask, jnp.sqrt(jnp.maximum(x, 0.0)), 0.0)
 
 
+def cruise_speed(vp: VehicleParams, lambda_t, lam_b, tau, v_top, table=None, n: int = 256):
+    """The constant speed (m/s) that minimises (H(F_0(v) v, v) + lambda_t) / v on a flat road,
+    the cost per metre of cruising, over n speeds in [V_CRAWL, v_top] (H from `table` if given,
+    else the soft minimum of `mode_gear_split` at tau); returns ()."""
+    dtype = jnp.result_type(v_top, vp.mass, float)
+    v = jnp.linspace(V_CRAWL, 1.0, n, dtype=dtype) * jnp.asarray(v_top, dtype)
+    v = jnp.maximum(v, V_CRAWL)
+    P_d = pt.road_load(vp, v, 0.0) * v
+    if table is None:
+        lam = jnp.asarray(lam_b, dtype)
+        H = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v, lam).H
+        h = soft_min_hamiltonian(H, P_d, vp, tau)
+    else:
+        h = table_hamiltonian(table, vp, P_d, v)
+    return v[jnp.argmin((h + jnp.asarray(lambda_t, dtype)) / v)]
+
+
 class _EcoSetup(NamedTuple):
     lo: Any
     hi: Any
@@ -862,12 +889,14 @@ def optimize_velocity(
         (`acceleration_limits`; a_fwd as Level 3's forward pass).
     Method: the soft-minimised Hamiltonian is tabulated once over (speed, power) (`eco_table`,
     table_size = (n_v, n_P); None evaluates `mode_gear_split` per cell and step: exact, about
-    100 x slower), then n_steps of projected Adam (optax) from Level 3's profile (or v_init),
-    the learning rate (m/s per step) decaying exponentially from learning_rate to
-    final_lr_ratio x learning_rate. Every iterate is PROJECTED onto the constraints
-    (`project_speeds`: the bounds, and the acceleration limits with the traction limit taken at
-    the previous iterate), so no penalty is needed and the speeds can move as a whole (slowing
-    down ahead of a crest along a climb at the traction limit). The iterate of least objective
+    100 x slower), then n_steps of projected Adam (optax) from Level 3's profile capped at the
+    best cruise speed on a flat road (`cruise_speed`; or from v_init), the learning rate (m/s
+    per step) decaying exponentially from learning_rate to final_lr_ratio x learning_rate
+    (Adam's b2 = ADAM_B2, a short memory for a kinked objective). Every iterate is PROJECTED
+    onto the constraints (`project_speeds`: the bounds, and the acceleration limits with the
+    traction limit taken at the previous iterate), so no penalty is needed and the speeds can
+    move as a whole (slowing down ahead of a crest along a climb at the traction limit). The
+    iterate of least objective
     is kept; `restore_feasible` then removes what the lagged traction limit left
     (acc_violation: the largest violation before that, m/s^2). cost, cost_exact and energy_J
     are evaluated per cell with `mode_gear_split` (no table). If the objective is not finite,
@@ -893,15 +922,11 @@ def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learnin
     def loss(v):
         return eco_cost(route, vp, v, lambda_t, lam_b, tau, table)
 
-    if v_init is None:  # Level 3's profile under the best of N_CAPS uniform speed caps
-        caps = jnp.linspace(1.0, 1.0 / N_CAPS, N_CAPS, dtype=dtype) * jnp.max(hi)
-        cands = jax.vmap(lambda c: project_speeds(route, vp, jnp.minimum(hi, c), hi, lo, hi,
-                                                  w_pred))(caps)
-        f_c = jax.vmap(loss)(cands)
-        v0 = cands[jnp.argmin(jnp.where(jnp.isfinite(f_c), f_c, jnp.inf))]
+    if v_init is None:  # Level 3's profile capped at the best cruise speed on a flat road
+        v0 = jnp.minimum(hi, cruise_speed(vp, lambda_t, lam_b, tau, jnp.max(hi), table))
     else:
         v0 = jnp.asarray(v_init, dtype)
-    v0 = project_speeds(route, vp, v0, v0, lo, hi, w_pred)
+    v0 = project_speeds(route, vp, v0, hi, lo, hi, w_pred)
 
     def projected(v, g):  # the gradient without the components the bounds block
         return jnp.where(((v <= lo) & (g > 0)) | ((v >= hi) & (g < 0)), 0.0, g)
@@ -940,13 +965,13 @@ def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learnin
     acc_viol = jnp.max(acceleration_violation(route, vp, v_opt, w_pred))
     v_ret = restore_feasible(route, vp, v_opt, w_pred)
     prof = profile_from_speed(route, vp, v_ret, l3.v_fwd, l3.v_bwd, l3.feasible)
-    cells = eco_cells(route, vp, v_ret, lam_b, None)
-    energy = jnp.sum(cells.energy)
+    soft, hard = _soft_and_exact(route, vp, v_ret, lam_b, tau)
+    energy = jnp.sum(hard.energy)
     status = jnp.where(l3.feasible, ECO_OK, ECO_STALL) | jnp.where(finite, 0, ECO_NONFINITE)
     return EcoResult(
         profile=prof,
         v_level3=hi,
-        cost=eco_cost(route, vp, v_ret, lambda_t, lam_b, tau),
+        cost=jnp.sum(soft.energy) + lambda_t * prof.trip_time,
         cost_exact=energy + lambda_t * prof.trip_time,
         energy_J=energy,
         trip_time=prof.trip_time,
