@@ -30,13 +30,13 @@ config.update("jax_enable_x64", True)
 from jaxems import powertrain as pt  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
-from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
+from jaxems.strategies import PAPER_STRATEGIES, STRATEGIES, simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
-DEFAULT_STRATEGIES = STRATEGIES  # conventional, baseline, multilevel, multilevel-mpc, dp-bound
+DEFAULT_STRATEGIES = PAPER_STRATEGIES  # conventional, baseline, multilevel, -mpc, dp-bound
 
 # the paper's Table 8 (typical long-haul route, 25 t, proprietary model): l/100 km, saving %
 PAPER = {"conventional": (33.0, 0.0), "baseline": (31.1, -5.8), "multilevel-mpc": (30.7, -7.0)}

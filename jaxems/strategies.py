@@ -19,6 +19,12 @@
   indexed by position: re-planning it from the measured position over a 1000 s window gives the
   same reference as the full-route profile restricted to the window (the forward/backward
   passes are position-indexed), so it is computed once per route.
+- ``multilevel-eco``: ``multilevel`` on an eco-driving speed profile: Level 3 optimises the
+  speed (`velocity.optimize_velocity`: fuel-equivalent energy at Level 2's charge-sustaining
+  lambda_b plus lambda_t times the trip time, under Level 3's own profile), with lambda_t found
+  by bisection so that the trip time is Level 3's (times ``eco_time_ratio``; within 0.5 %), or
+  given (``eco_lambda_t``). The speed stays fixed over the iterations (omega and lambda_b are
+  fed back as in ``multilevel``).
 - ``dp-bound``: the global optimum of problem (21) with the velocity fixed to the Level 3
   prediction: a backward dynamic program over (E_b grid x mode x gear) with the same switching
   costs, charge sustaining through a terminal penalty, then a forward rollout from the exact
@@ -51,12 +57,15 @@ from .levels import velocity as l3
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, with_overrides
 from .route import Route
 
-STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound")
-HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
+STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound",
+              "multilevel-eco")
+PAPER_STRATEGIES = STRATEGIES[:5]  # the rows of the paper's Table 8
+HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound", "multilevel-eco")
 
 # status codes of a run (bit flags) and their names
-OK, INFEASIBLE_ROUTE, UNFINISHED = 0, 1, 2
-STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished"}
+OK, INFEASIBLE_ROUTE, UNFINISHED, ECO_TIME = 0, 1, 2, 4
+STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished",
+                ECO_TIME: "eco-trip-time-missed"}
 
 
 class Options(NamedTuple):
@@ -74,7 +83,9 @@ class Options(NamedTuple):
     piecewise-constant costate (I1); tau_E: time constant (s) of the plant's battery-power
     feedback on the deviation from a plan's battery energy; same_open_time: every vehicle
     has dt_M == dt_G, so Level 1 takes the fast relaxation without a runtime branch (set by
-    `simulate` and `simulate_batch` from the vehicles; None: decided at run time).
+    `simulate` and `simulate_batch` from the vehicles; None: decided at run time);
+    eco_lambda_t: multilevel-eco's price of a second (J/s; None: found so that the trip takes
+    eco_time_ratio times Level 3's trip time, a ratio in [1, 1.5]).
     """
 
     n_iter: int = 2
@@ -94,6 +105,8 @@ class Options(NamedTuple):
     l2_pieces: int = 32
     tau_E: float = 60.0
     same_open_time: bool | None = None
+    eco_lambda_t: float | None = None
+    eco_time_ratio: float = 1.0
 
 
 class Metrics(NamedTuple):
@@ -480,7 +493,12 @@ class Iteration(NamedTuple):
 
 
 def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
-    pred0 = level3(route, vp, dt, n_steps)
+    return _iterate(route, vp, dt, n_steps, opts, params, level3(route, vp, dt, n_steps), True)
+
+
+def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredict: bool) -> Run:
+    """The iteration scheme from the prediction pred0; repredict (static): Level 3 re-predicts
+    with Level 1's engine speed each iteration (else the speed profile stays pred0's)."""
     n_plant = plant_steps(n_steps, opts)
 
     def iteration(carry, _):
@@ -505,8 +523,11 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         moving = pred.mask & (pred.v > 0)
         engine_on = moving & ((r1.mode == ps.MC) | (r1.mode == ps.ME))
         w_new = jnp.where(engine_on, r1.w, w)
-        w_e = jnp.where(engine_on, jnp.clip(r1.w, vp.we_min, vp.we_max), vp.w_pred)
-        pred_new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
+        if repredict:
+            w_e = jnp.where(engine_on, jnp.clip(r1.w, vp.we_min, vp.we_max), vp.w_pred)
+            pred_new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
+        else:
+            pred_new = pred
         return (pred_new, w_new, plant_drift(pred, plan, res)), (it, res, pred)
 
     w0 = jnp.full_like(pred0.v, vp.w_pred)
@@ -517,6 +538,50 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     # Level 2's own flags (at a guard, pieces exhausted, ...) stay in `extra`: the run is
     # complete whatever they say, and its battery balance is reported
     return Run(_metrics(res, pred, vp, its.lambda_b[-1], OK), res, pred, its)
+
+
+class EcoExtra(NamedTuple):
+    """multilevel-eco's extras: the iterations, lambda_t (J/s) and lambda_b of the speed
+    optimisation, the trip time of Level 3's own prediction (s) and the optimiser's status
+    (`velocity.eco_status_names`)."""
+
+    iterations: Iteration
+    lambda_t: Any
+    lambda_b: Any
+    level3_trip_time: Any
+    eco_status: Any
+
+
+def eco_costate(vp, pred: l3.Prediction, dt):
+    """The lambda_b that prices battery energy in the eco-driving objective: Level 2's
+    charge-sustaining costate on Level 3's prediction (one piece, without battery limits)."""
+    w = jnp.full_like(pred.v, vp.w_pred)
+    return l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt, E_min=-jnp.inf,
+                             E_max=jnp.inf, max_pieces=1).lam0
+
+
+def eco_speed(route, vp, dt, n_steps: int, opts: Options):
+    """Level 3 with eco-driving for one route and one vehicle: (`velocity.EcoResult`,
+    lambda_b, Level 3's own `Prediction`)."""
+    pred3 = level3(route, vp, dt, n_steps)
+    lam_b = eco_costate(vp, pred3, dt)
+    if opts.eco_lambda_t is None:
+        _, eco = l3.match_trip_time(route, vp, pred3.trip_time * opts.eco_time_ratio, lam_b)
+    else:
+        eco = l3.optimize_velocity(route, vp, opts.eco_lambda_t, lam_b)
+    return eco, lam_b, pred3
+
+
+def run_multilevel_eco(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    eco, lam_b, pred3 = eco_speed(route, vp, dt, n_steps, opts)
+    pred0 = l3.resample(route, vp, eco.profile, dt, n_steps)
+    run = _iterate(route, vp, dt, n_steps, opts, params, pred0, False)
+    missed = (eco.status & (l3.ECO_TARGET_FAST | l3.ECO_TARGET_SLOW | l3.ECO_TARGET_MISSED)) > 0
+    # a profile longer than the step grid would be cut: flag it (steps_for_batch sizes the grid)
+    missed = missed | (eco.trip_time > n_steps * dt)
+    m = run.metrics._replace(status=run.metrics.status | jnp.where(missed, ECO_TIME, OK))
+    extra = EcoExtra(run.extra, eco.lambda_t, lam_b, pred3.trip_time, eco.status)
+    return Run(m, run.plant, run.pred, extra)
 
 
 class MpcParams(NamedTuple):
@@ -710,6 +775,7 @@ KERNELS = {
     "multilevel": run_multilevel,
     "multilevel-mpc": run_multilevel_mpc,
     "dp-bound": run_dp_bound,
+    "multilevel-eco": run_multilevel_eco,
 }
 
 
@@ -741,15 +807,33 @@ def _item_fn(strategy: str, dt: float, n_steps: int, opts: Options):
 _profile_batch = jax.jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
 
 
-def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0) -> int:
+@functools.lru_cache(maxsize=16)
+def _eco_trip_fn(dt: float, n_steps: int, opts: Options):
+    return jax.jit(jax.vmap(lambda route, vp: eco_speed(route, vp, dt, n_steps, opts)[0].trip_time,
+                            in_axes=(None, 0)))
+
+
+def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
+                    strategy: str | None = None, options: Options | None = None) -> int:
     """Static Level 3 step count for a route and one vehicle or a batch (leading axis on every
-    leaf): the longest trip, bucketed (`velocity.steps_for`)."""
+    leaf): the longest trip, bucketed (`velocity.steps_for`). multilevel-eco drives its own
+    profile: matched to Level 3's trip time (times eco_time_ratio, with the 0.5 % tolerance) or,
+    with a given eco_lambda_t, as long as its optimum takes (computed here)."""
     if np.ndim(vehicles.mass) == 0:
         vehicles = stack_vehicles([vehicles])
     B, N = np.shape(vehicles.mass)[0], np.shape(route.grade)[-1]
     w = np.broadcast_to(np.asarray(vehicles.w_pred)[:, None], (B, N))
     prof = _profile_batch(route, vehicles, w)
-    return l3.steps_for(float(jnp.max(prof.trip_time)), dt)
+    trip = float(jnp.max(prof.trip_time))
+    n = l3.steps_for(trip, dt)
+    if strategy == "multilevel-eco":
+        o = options or Options()
+        if o.eco_lambda_t is None:
+            trip = trip * o.eco_time_ratio * (1.0 + 2.0 * l3.MATCH_RTOL)
+        else:
+            trip = max(trip, float(jnp.max(_eco_trip_fn(float(dt), n, o)(route, vehicles))))
+        n = max(n, l3.steps_for(trip, dt))
+    return n
 
 
 def _check_dt(dt):
@@ -789,9 +873,10 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     """
     check_strategy(strategy)
     dt = _check_dt(dt)
-    if n_steps is None:
-        n_steps = steps_for_batch(route, vehicles, dt)
     opts = resolve_options(options or Options(), vehicles)
+    _check_options(opts)
+    if n_steps is None:
+        n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
     params = switching or sw.SwitchCostParams()
     fn = _item_fn(strategy, dt, int(n_steps), opts)
     m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices)
@@ -854,7 +939,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
         raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
     params = switching or sw.SwitchCostParams()
     opts = resolve_options(opts, vp)
-    n_steps = steps_for_batch(route, vp, dt)
+    n_steps = steps_for_batch(route, vp, dt, strategy, opts)
     t0 = time.perf_counter()
     run = _run_one(route, vp, params, strategy=strategy, dt=dt, n_steps=n_steps, opts=opts)
     jax.block_until_ready(run)
@@ -880,6 +965,13 @@ def _check_options(o: Options):
         v = getattr(o, k)
         if not (isinstance(v, int) and v >= lo):
             raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
+    if not (isinstance(o.eco_time_ratio, int | float) and 1.0 <= o.eco_time_ratio <= 1.5):
+        raise ValueError(f"eco_time_ratio: must be from 1 to 1.5 (got {o.eco_time_ratio!r})")
+    if o.eco_lambda_t is not None and not (isinstance(o.eco_lambda_t, int | float)
+                                           and math.isfinite(o.eco_lambda_t)
+                                           and o.eco_lambda_t >= 0):
+        raise ValueError(f"eco_lambda_t: must be a price of time >= 0 J/s or None (got "
+                         f"{o.eco_lambda_t!r})")
     if not (0 <= o.soc_ref <= 1):
         raise ValueError(f"soc_ref: must be in [0, 1] (got {o.soc_ref})")
     if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0

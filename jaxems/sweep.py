@@ -551,12 +551,16 @@ def _compute_remote(task: ChunkTask, route: Route) -> dict[str, Any]:
 
 def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],
                     points: Sequence[dict]) -> int:
-    """Static step count shared by all chunks of a route: max over its grid (bucketed).
+    """Static step count shared by all chunks of a route: max over its grid and strategies
+    (bucketed; multilevel-eco drives its own profile, see `strategies.steps_for_batch`).
 
     Evaluated chunk by chunk on the same padded batches as the simulation (same shapes, so one
     Level 3 compilation per route shape).
     """
-    from .strategies import steps_for_batch
+    from .strategies import Options, steps_for_batch
+
+    eco = "multilevel-eco" in cfg.strategies
+    eco_opts = (strategy_options(cfg.options.get("multilevel-eco")) or Options()) if eco else None
 
     seen: set[tuple[int, ...]] = set()
     n = 0
@@ -567,6 +571,8 @@ def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],
             seen.add(c.grid_index)
             vb = vehicle_batch(cfg.vehicle, [points[i] for i in c.grid_index])
             n = max(n, int(steps_for_batch(route, vb, cfg.dt)))
+            if eco:
+                n = max(n, int(steps_for_batch(route, vb, cfg.dt, "multilevel-eco", eco_opts)))
     return n
 
 
