@@ -41,6 +41,25 @@ T uniform steps t_k = k dt (T static; a mask marks t_k < trip time):
 - v_ref,k the instantaneous speed at t_k, the reference a speed controller tracks.
 
 Road load follows `powertrain.road_load` (resistance positive): F_0 = F_air + F_roll + F_grade.
+
+Eco-driving (`optimize_velocity`; the paper's future work, sections 6 and 8). Instead of
+predicting, choose the node speeds v_i below Level 3's profile that minimise
+
+    J(v) = sum_cells H*(P_d, v_mean) dt + lambda_t (sum_cells dt + stop times)
+
+with the cell model of `resample` (constant acceleration, dt = 2 ds / (v_i + v_i+1), P_d the
+exact work over the cell divided by dt) and H* the soft minimum over the 4 modes x 12 gears of
+Level 1's Hamiltonian H = P_f - lambda_b P_bi (`powersplit.mode_gear_split`) at the cell's mean
+power and speed: fuel-equivalent power at Level 2's battery price lambda_b. lambda_t (J/s) is
+the price of time; `match_trip_time` finds the one that gives a target trip time. Constraints:
+Level 3's profile as the upper bound (vmax, v0, traction, comfort braking, start and end),
+0 at stops, V_CRAWL elsewhere, the first and last node as Level 3's, and per cell
+-a_min <= a <= a_fwd(v_i, grade_i). The optimiser is projected Adam on v (`project_speeds` after
+each step) over a table of H* (`eco_table`), from Level 3 capped at the best flat-road cruise
+speed (`cruise_speed`). The surrogate has no switching costs and no battery limits (Level 2 and
+Level 1 add them when they run on the optimised profile); alone, its optimum is a pulse-and-glide
+sawtooth of cell-scale period (engine on, engine off) that costs mode switches, so the optimiser
+adds `eco_regulariser`, switch_weight x the total variation of the acceleration.
 """
 
 from __future__ import annotations
@@ -466,6 +485,8 @@ LEARNING_RATE = 0.3  # m/s: default first step size
 FINAL_LR_RATIO = 3e-3  # the step size decays to this fraction over the steps
 ADAM_B2 = 0.99  # Adam's second-moment decay (shorter memory than optax's 0.999: kinks)
 N_BISECT = 12  # default bisection steps of `match_trip_time`
+SWITCH_WEIGHT = 1.0e5  # J/(m/s^2): default weight of `eco_regulariser`
+ACC_EPS = 0.01  # m/s^2: smoothing of the total variation in `eco_regulariser`
 BIG_V2 = 1.0e12  # (m/s)^2: "no constraint" in the min-plus scans of `project_speeds`
 LAMBDA_T_RANGE = (1.0e2, 1.0e7)  # J/s: bracket of `match_trip_time` (searched in log scale)
 MATCH_RTOL = 5e-3  # relative trip-time tolerance of `match_trip_time`
@@ -515,19 +536,22 @@ class EcoResult(NamedTuple):
     profile: `Profile` of the optimised speeds (v: (N,) m/s; v_fwd, v_bwd: Level 3's passes,
     whose minimum is the envelope); v_level3: (N,) Level 3's speeds (the upper bound);
     cost: () J, surrogate objective (soft minimum over modes/gears, temperature tau) of the
-    returned speeds; cost_exact: () J, the same with the exact (hard) minimum; energy_J: () J,
+    returned speeds; cost_exact: () J, the same with the exact (hard) minimum; regulariser: ()
+    J, the switching proxy `eco_regulariser` of the returned speeds (not in cost); energy_J: () J,
     fuel-equivalent energy sum(H dt) with the hard minimum (fuel + |lambda_b| x battery energy);
     trip_time: () s; lambda_t: () J/s the time price used; acc_violation: () m/s^2, the
     largest acceleration-limit violation of the optimiser's iterate before the feasibility
     restoration (the returned profile is restored); grad_norm: () J/(m/s), norm of the
-    projected gradient at that iterate; history: (n_steps,) J, penalised soft objective per
-    step; status: () int32 bit flags (ECO_*).
+    gradient at that iterate without the components the bounds block; history: (n_steps,) J,
+    the objective the optimiser steps on (tabulated soft minimum) at each iterate; status: ()
+    int32 bit flags (ECO_*, names from `eco_status_names`).
     """
 
     profile: Profile
     v_level3: Any
     cost: Any
     cost_exact: Any
+    regulariser: Any
     energy_J: Any
     trip_time: Any
     lambda_t: Any
@@ -744,6 +768,25 @@ def acceleration_violation(route: Route, vp: VehicleParams, v, w_pred=None):
     return jnp.where(jnp.asarray(route.mask)[1:], viol, 0.0)
 
 
+def eco_regulariser(route: Route, v, weight, eps=ACC_EPS):
+    """Switching proxy (J): weight x the total variation of the acceleration along the route,
+    sum over neighbouring cells of sqrt((a_i+1 - a_i)^2 + eps^2) - eps (smooth near 0).
+
+    The surrogate has no switching costs; without this term its optimum rides the kinks of H
+    (engine on/off) with a pulse-and-glide sawtooth of cell-scale period, each pulse a mode
+    switch Level 1 and the plant pay for. weight: J per m/s^2 of acceleration change (about
+    the cost of the mode switches one change brings, Appendix C); 0 switches it off.
+    """
+    grade = jnp.asarray(route.grade)
+    mask = jnp.asarray(route.mask)
+    ds = jnp.asarray(route.ds, grade.dtype)
+    v = jnp.where(mask, v, 0.0)
+    a = (v[1:] ** 2 - v[:-1] ** 2) / (2.0 * ds)
+    both = mask[1:-1] & mask[2:]  # cells i and i + 1 on the route
+    da = jnp.where(both, a[1:] - a[:-1], 0.0)
+    return weight * jnp.sum(jnp.sqrt(da * da + eps * eps) - eps)
+
+
 def restore_feasible(route: Route, vp: VehicleParams, v, w_pred=None):
     """The largest speeds below v: (N,) that meet the acceleration limits (m/s).
 
@@ -868,6 +911,7 @@ def optimize_velocity(
     learning_rate=LEARNING_RATE,
     final_lr_ratio=FINAL_LR_RATIO,
     tau=TAU_W,
+    switch_weight=SWITCH_WEIGHT,
     w_pred=None,
     v_init=None,
     table_size: tuple[int, int] | None = TABLE_SIZE,
@@ -876,12 +920,14 @@ def optimize_velocity(
 
     ONE route and ONE vehicle; pure, jit- and vmap-able. n_steps and table_size are static;
     lambda_t (J/s, >= 0, the price of a second), lam_b (Level 2's costate, < 0, about -2),
-    learning_rate (m/s), final_lr_ratio, tau (W), w_pred (rad/s, () or (N,); Level 3's engine
-    speed), v_init ((N,) m/s or None) and the vehicle's leaves are arrays, so new values do not
-    recompile.
+    learning_rate (m/s), final_lr_ratio, tau (W), switch_weight (J/(m/s^2)), w_pred (rad/s, ()
+    or (N,); Level 3's engine speed), v_init ((N,) m/s or None) and the vehicle's leaves are
+    arrays, so new values do not recompile.
 
-    Problem: minimise `eco_cost(route, vp, v, lambda_t, lam_b, tau)` over the node speeds v:
-    (N,) subject to
+    Problem: minimise `eco_cost(route, vp, v, lambda_t, lam_b, tau)` plus the switching proxy
+    `eco_regulariser(route, v, switch_weight)` (J per m/s^2 of acceleration change; 0: the
+    surrogate alone, whose optimum is a pulse-and-glide sawtooth that Level 1 and the plant
+    pay in mode switches) over the node speeds v: (N,) subject to
       - bounds lo <= v <= hi (`speed_bounds`): hi = Level 3's own profile (so the optimum is
         only ever slower than Level 3, where that pays), lo = 0 at stops and V_CRAWL elsewhere,
         the first and last node fixed to Level 3's;
@@ -907,11 +953,11 @@ def optimize_velocity(
     setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size)
     return _eco_solve(route, vp, lambda_t, lam_b, setup, n_steps=n_steps,
                       learning_rate=learning_rate, final_lr_ratio=final_lr_ratio, tau=tau,
-                      w_pred=w_pred, v_init=v_init)
+                      switch_weight=switch_weight, w_pred=w_pred, v_init=v_init)
 
 
 def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learning_rate,
-               final_lr_ratio, tau, w_pred, v_init) -> EcoResult:
+               final_lr_ratio, tau, switch_weight, w_pred, v_init) -> EcoResult:
     import optax  # noqa: PLC0415 (optax is only needed here)
 
     lo, hi, l3, table = setup
@@ -919,8 +965,10 @@ def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learnin
     lambda_t = jnp.asarray(lambda_t, dtype)
     tau = jnp.asarray(tau, dtype)
 
+    sw = jnp.asarray(switch_weight, dtype)
+
     def loss(v):
-        return eco_cost(route, vp, v, lambda_t, lam_b, tau, table)
+        return eco_cost(route, vp, v, lambda_t, lam_b, tau, table) + eco_regulariser(route, v, sw)
 
     if v_init is None:  # Level 3's profile capped at the best cruise speed on a flat road
         v0 = jnp.minimum(hi, cruise_speed(vp, lambda_t, lam_b, tau, jnp.max(hi), table))
@@ -973,6 +1021,7 @@ def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learnin
         v_level3=hi,
         cost=jnp.sum(soft.energy) + lambda_t * prof.trip_time,
         cost_exact=energy + lambda_t * prof.trip_time,
+        regulariser=eco_regulariser(route, v_ret, sw),
         energy_J=energy,
         trip_time=prof.trip_time,
         lambda_t=lambda_t,
@@ -994,6 +1043,7 @@ def match_trip_time(
     learning_rate=LEARNING_RATE,
     final_lr_ratio=FINAL_LR_RATIO,
     tau=TAU_W,
+    switch_weight=SWITCH_WEIGHT,
     w_pred=None,
     lambda_t_range=LAMBDA_T_RANGE,
     table_size: tuple[int, int] | None = TABLE_SIZE,
@@ -1003,7 +1053,8 @@ def match_trip_time(
     ONE route and ONE vehicle; pure, jit- and vmap-able; n_bisect, n_steps, table_size static.
     Bisection on log(lambda_t) over lambda_t_range = (lo, hi) J/s (the optimised trip time
     decreases as lambda_t grows), n_bisect steps, each a full `optimize_velocity` from Level 3's
-    profile (the table is built once); the evaluated lambda_t whose trip time is closest to the
+    profile (the table is built once; the other keywords as `optimize_velocity`); the
+    evaluated lambda_t whose trip time is closest to the
     target is returned, so (lambda_t, result) is what `optimize_velocity(..., lambda_t)` gives.
     Returns (lambda_t: () J/s, `EcoResult`). status flags: ECO_TARGET_FAST when the target is
     below the fastest trip found (no profile under Level 3's envelope is that fast; Level 3's
@@ -1020,7 +1071,7 @@ def match_trip_time(
     def solve(lt):
         return _eco_solve(route, vp, lt, lam_b, setup, n_steps=n_steps,
                           learning_rate=learning_rate, final_lr_ratio=final_lr_ratio, tau=tau,
-                          w_pred=w_pred, v_init=None)
+                          switch_weight=switch_weight, w_pred=w_pred, v_init=None)
 
     def body(carry, _):
         lo, hi, best, best_err = carry
@@ -1052,13 +1103,13 @@ def match_trip_time(
 
 # ----------------------------------------------------------------------------- batched
 def _optimize_batch(routes, vehicles, lambda_t, lam_b, w, learning_rate, final_lr_ratio, tau,
-                    n_steps, table_size):
+                    switch_weight, n_steps, table_size):
     TRACES["optimize_velocity_batch"] += 1
 
     def one(route, vp, lt, lb, w_i):
         return optimize_velocity(route, vp, lt, lb, n_steps=n_steps, learning_rate=learning_rate,
-                                 final_lr_ratio=final_lr_ratio, tau=tau, w_pred=w_i,
-                                 table_size=table_size)
+                                 final_lr_ratio=final_lr_ratio, tau=tau,
+                                 switch_weight=switch_weight, w_pred=w_i, table_size=table_size)
 
     return jax.vmap(one)(routes, vehicles, lambda_t, lam_b, w)
 
@@ -1076,6 +1127,7 @@ def optimize_velocity_batch(
     learning_rate=LEARNING_RATE,
     final_lr_ratio=FINAL_LR_RATIO,
     tau=TAU_W,
+    switch_weight=SWITCH_WEIGHT,
     w_pred=None,
     table_size: tuple[int, int] | None = TABLE_SIZE,
 ) -> EcoResult:
@@ -1086,7 +1138,8 @@ def optimize_velocity_batch(
     of vehicles is accepted too (pairing as `predict_batch`: member b is route b with vehicle b;
     for every combination, repeat them). lambda_t, lam_b: () or (B,); w_pred: None (each
     vehicle's w_pred) or rad/s broadcastable to (B, N). New values of any of these reuse the
-    compilation (TRACES["optimize_velocity_batch"] counts traces). Returns `EcoResult` with a
+    compilation (TRACES["optimize_velocity_batch"] counts traces); learning_rate,
+    final_lr_ratio, tau, switch_weight: scalars shared by the batch. Returns `EcoResult` with a
     leading axis B.
     """
     if not isinstance(routes, Route):
@@ -1125,4 +1178,4 @@ def optimize_velocity_batch(
     if np.any(lt < 0):
         raise ValueError(f"optimize_velocity_batch: lambda_t must be >= 0 J/s (got {lt})")
     return _optimize_vmap(routes, vehicles, lt, lb, w, learning_rate, final_lr_ratio, tau,
-                          n_steps=n_steps, table_size=table_size)
+                          switch_weight, n_steps=n_steps, table_size=table_size)
