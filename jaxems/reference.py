@@ -1022,3 +1022,6 @@ def ref_eco_dp(route: Route, vp: VehicleParams, lambda_t, lam_b, v_grid, h_min=N
     energy = float(np.sum(np.asarray(h_min(P_d, v_mean)) * dt))
     return RefEco(v=v, cost=float(J[0]) + lambda_t * float(stop.sum()), energy=energy,
                   trip_time=float(trip), envelope=env)
+
+
+__all__ += ["RefEco", "ref_eco_cell", "ref_eco_dp", "ref_hamiltonian_min"]

@@ -897,7 +897,7 @@ def _eco_setup(route, vp, lam_b, tau, w_pred, table_size) -> _EcoSetup:
     table = None
     if table_size is not None:
         n_v, n_P = table_size
-        table = eco_table(vp, lam_b, jnp.max(hi) + 0.1, tau, n_v, n_P)
+        table = eco_table(vp, lam_b, jnp.maximum(jnp.max(hi) + 0.1, 1.0), tau, n_v, n_P)
     return _EcoSetup(lo, hi, l3, table)
 
 
