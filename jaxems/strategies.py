@@ -23,8 +23,10 @@
   speed (`velocity.optimize_velocity`: fuel-equivalent energy at Level 2's charge-sustaining
   lambda_b plus lambda_t times the trip time, under Level 3's own profile), with lambda_t found
   by bisection so that the trip time is Level 3's (times ``eco_time_ratio``; within 0.5 %), or
-  given (``eco_lambda_t``). The speed stays fixed over the iterations (omega and lambda_b are
-  fed back as in ``multilevel``).
+  given (``eco_lambda_t``). Where the route allows the cruise speed v0, the speed may exceed it
+  by ``eco_overspeed_kmh`` (5 km/h: 85 -> 90 km/h, a predictive cruise control's band), so that
+  time given up before a crest is regained on the descent. The speed stays fixed over the
+  iterations (omega and lambda_b are fed back as in ``multilevel``).
 - ``dp-bound``: the global optimum of problem (21) with the velocity fixed to the Level 3
   prediction: a backward dynamic program over (E_b grid x mode x gear) with the same switching
   costs, charge sustaining through a terminal penalty, then a forward rollout from the exact
@@ -85,7 +87,10 @@ class Options(NamedTuple):
     has dt_M == dt_G, so Level 1 takes the fast relaxation without a runtime branch (set by
     `simulate` and `simulate_batch` from the vehicles; None: decided at run time);
     eco_lambda_t: multilevel-eco's price of a second (J/s; None: found so that the trip takes
-    eco_time_ratio times Level 3's trip time, a ratio in [1, 1.5]).
+    eco_time_ratio times Level 3's trip time, a ratio in [1, 1.5]); eco_overspeed_kmh: how far
+    above the cruise speed v0 eco-driving may go where the route allows v0 (km/h, 0 to 15;
+    `velocity.speed_bounds`; 0: never faster than Level 3, which then leaves no freedom at
+    Level 3's trip time).
     """
 
     n_iter: int = 2
@@ -107,6 +112,7 @@ class Options(NamedTuple):
     same_open_time: bool | None = None
     eco_lambda_t: float | None = None
     eco_time_ratio: float = 1.0
+    eco_overspeed_kmh: float = 5.0
 
 
 class Metrics(NamedTuple):
@@ -565,10 +571,12 @@ def eco_speed(route, vp, dt, n_steps: int, opts: Options):
     lambda_b, Level 3's own `Prediction`)."""
     pred3 = level3(route, vp, dt, n_steps)
     lam_b = eco_costate(vp, pred3, dt)
+    band = opts.eco_overspeed_kmh / 3.6
     if opts.eco_lambda_t is None:
-        _, eco = l3.match_trip_time(route, vp, pred3.trip_time * opts.eco_time_ratio, lam_b)
+        _, eco = l3.match_trip_time(route, vp, pred3.trip_time * opts.eco_time_ratio, lam_b,
+                                    overspeed=band)
     else:
-        eco = l3.optimize_velocity(route, vp, opts.eco_lambda_t, lam_b)
+        eco = l3.optimize_velocity(route, vp, opts.eco_lambda_t, lam_b, overspeed=band)
     return eco, lam_b, pred3
 
 
@@ -967,6 +975,9 @@ def _check_options(o: Options):
             raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
     if not (isinstance(o.eco_time_ratio, int | float) and 1.0 <= o.eco_time_ratio <= 1.5):
         raise ValueError(f"eco_time_ratio: must be from 1 to 1.5 (got {o.eco_time_ratio!r})")
+    if not (isinstance(o.eco_overspeed_kmh, int | float) and 0 <= o.eco_overspeed_kmh <= 15):
+        raise ValueError(f"eco_overspeed_kmh: must be from 0 to 15 km/h (got "
+                         f"{o.eco_overspeed_kmh!r})")
     if o.eco_lambda_t is not None and not (isinstance(o.eco_lambda_t, int | float)
                                            and math.isfinite(o.eco_lambda_t)
                                            and o.eco_lambda_t >= 0):

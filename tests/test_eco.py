@@ -108,7 +108,7 @@ def _valid(route, x):
 def _check_constraints(route, vp, res, tol=1e-9):
     n = n_nodes(route)
     v = _valid(route, res.profile.v)
-    hi = _valid(route, res.v_level3)
+    hi = _valid(route, res.v_upper)
     stop = _valid(route, route.stop)
     assert np.all(v <= hi + tol)
     assert np.all(v[stop > 0] == 0.0)
@@ -412,3 +412,26 @@ def test_match_trip_time():
     lt_f, fast = MATCH(HILL, VP, 0.95 * l3_trip, LAM_B)
     assert int(fast.status) & ECO_TARGET_FAST
     assert float(fast.trip_time) >= l3_trip - 1e-9
+
+
+def test_overspeed_band_pays_at_level3s_trip_time():
+    # the route allows the cruise speed (80 km/h) everywhere: Level 3 cruises at the limit
+    vp = VP.replace(v_cruise=80 / 3.6)
+    l3 = PROFILE(HILL, vp)
+    trip = float(l3.trip_time)
+    e_l3 = float(EXACT(HILL, vp, l3.v, 0.0, LAM_B))
+    # no band: nothing may be faster than Level 3, so at its trip time the optimum is Level 3's
+    _, r0 = MATCH(HILL, vp, trip, LAM_B)
+    assert np.max(np.abs(_valid(HILL, r0.profile.v) - _valid(HILL, l3.v))) < 0.5
+    # a 5 km/h band above the cruise speed: slower up the hill, faster down, same trip time
+    band = 5 / 3.6
+    _, r5 = MATCH(HILL, vp, trip, LAM_B, overspeed=band)
+    assert int(r5.status) == 0
+    assert abs(float(r5.trip_time) / trip - 1) < 5e-3
+    v = _valid(HILL, r5.profile.v)
+    assert np.max(v) <= 80 / 3.6 + band + 1e-9 and np.max(v) > 80 / 3.6 + 0.5 * band
+    assert np.all(v <= _valid(HILL, r5.v_upper) + 1e-9)
+    assert v[0] == pytest.approx(float(l3.v[0])) and v[-1] == pytest.approx(
+        float(l3.v[n_nodes(HILL) - 1]), abs=1e-6)
+    e_0, e_5 = float(r0.energy_J), float(r5.energy_J)
+    assert e_5 < 0.98 * min(e_0, e_l3), (e_5, e_0, e_l3)

@@ -100,6 +100,25 @@ def test_charge_sustenance(runs):
         assert abs(runs[name]["delta_Eb_J"]) < 0.2 * size, name
 
 
+def test_eco_without_a_band_drives_level3(runs):
+    """The short track's limit (25 km/h) is below the cruise speed, so the overspeed band does
+    not apply: at Level 3's trip time no profile under Level 3's is as fast, so eco-driving
+    drives Level 3's own profile and repeats the multilevel run."""
+    eco, ml = runs["multilevel-eco"], runs["multilevel"]
+    ex = eco.extra
+    assert float(ex.lambda_t) > 0 and int(ex.eco_status) == 0
+    assert abs(float(eco.prediction.trip_time) / float(ex.level3_trip_time) - 1) < 5e-3
+    v_eco = np.asarray(eco.prediction.profile.v)
+    v_l3 = np.asarray(ml.prediction.profile.v)
+    assert np.max(np.abs(v_eco - v_l3)) < 0.05
+    assert abs(eco["fuel_J"] - ml["fuel_J"]) / ml["fuel_J"] < 1e-3
+    assert abs(eco["delta_Eb_J"]) < 0.01 * float(VP.E_b_max)
+    with pytest.raises(ValueError, match="eco_overspeed_kmh"):
+        S.simulate("short_track", VP, "multilevel-eco", eco_overspeed_kmh=-1.0)
+    with pytest.raises(ValueError, match="eco_time_ratio"):
+        S.simulate("short_track", VP, "multilevel-eco", eco_time_ratio=0.9)
+
+
 def test_dp_bound_predicts_what_the_plant_burns(runs):
     r = runs["dp-bound"]
     ex = r.extra

@@ -534,7 +534,8 @@ class EcoResult(NamedTuple):
     `optimize_velocity_batch`).
 
     profile: `Profile` of the optimised speeds (v: (N,) m/s; v_fwd, v_bwd: Level 3's passes,
-    whose minimum is the envelope); v_level3: (N,) Level 3's speeds (the upper bound);
+    whose minimum is Level 3's speed); v_level3: (N,) Level 3's speeds; v_upper: (N,) the upper
+    bound (`speed_bounds`: Level 3's speeds with the overspeed band);
     cost: () J, surrogate objective (soft minimum over modes/gears, temperature tau) of the
     returned speeds; cost_exact: () J, the same with the exact (hard) minimum; regulariser: ()
     J, the switching proxy `eco_regulariser` of the returned speeds (not in cost); energy_J: () J,
@@ -549,6 +550,7 @@ class EcoResult(NamedTuple):
 
     profile: Profile
     v_level3: Any
+    v_upper: Any
     cost: Any
     cost_exact: Any
     regulariser: Any
@@ -726,20 +728,30 @@ def eco_cost_exact(route: Route, vp: VehicleParams, v, lambda_t, lam_b):
     return eco_cost(route, vp, v, lambda_t, lam_b, None)
 
 
-def speed_bounds(route: Route, vp: VehicleParams, w_pred=None):
+def speed_bounds(route: Route, vp: VehicleParams, w_pred=None, overspeed=0.0):
     """Bounds of the eco-driving speeds: (lo, hi, level3), lo, hi: (N,) m/s, level3: Profile.
 
     hi is Level 3's predicted speed (vmax, v0, traction forward, comfort braking backward, the
-    start and end conditions); lo is 0 at stops, min(V_CRAWL, hi) elsewhere. The first and the
-    last node are fixed to Level 3's (lo = hi: standstill at a stop, the limit for a flying start
-    or a free end), so the kinetic energy at both ends, and the energy balance against Level 3,
-    are the same (a free end left open would be slowed down for free). Padding: 0.
+    start and end conditions) with the cruise speed v0 raised by ``overspeed`` (m/s, >= 0)
+    where the route allows v0 (vmax >= v0): the band a predictive cruise control may use above
+    its set speed, to regain on a descent the time it gave up before a crest; lower limits
+    stay. With overspeed 0 (the default) hi is Level 3's own profile, and at Level 3's trip
+    time the optimum can only be Level 3's. lo is 0 at stops, min(V_CRAWL, hi) elsewhere. The
+    first and the last node are fixed to Level 3's own speed (lo = hi: standstill at a stop, v0
+    for a flying start or a free end), so the kinetic energy at both ends, and the energy
+    balance against Level 3, are the same (a free end left open would be slowed down for free).
+    Padding: 0.
     """
     prof = velocity_profile(route, vp, w_pred)
     mask, _, _, _, floor = _limits(route, vp)
-    hi = prof.v
+    vmax = jnp.asarray(route.vmax, prof.v.dtype)
+    band = jnp.asarray(overspeed, prof.v.dtype)
+    env = velocity_profile(route._replace(vmax=jnp.where(vmax >= vp.v_cruise, vmax + band, vmax)),
+                           vp._replace(v_cruise=vp.v_cruise + band), w_pred)
+    ends = _last_node(mask) | (jnp.arange(mask.shape[0]) == 0)
+    hi = jnp.where(ends, prof.v, jnp.maximum(env.v, prof.v))
     lo = jnp.where(mask, jnp.minimum(floor, hi), 0.0)
-    lo = jnp.where(_last_node(mask), hi, lo.at[0].set(hi[0]))
+    lo = jnp.where(ends, hi, lo)
     return lo, hi, prof
 
 
@@ -892,8 +904,8 @@ class _EcoSetup(NamedTuple):
     table: Any
 
 
-def _eco_setup(route, vp, lam_b, tau, w_pred, table_size) -> _EcoSetup:
-    lo, hi, l3 = speed_bounds(route, vp, w_pred)
+def _eco_setup(route, vp, lam_b, tau, w_pred, table_size, overspeed=0.0) -> _EcoSetup:
+    lo, hi, l3 = speed_bounds(route, vp, w_pred, overspeed)
     table = None
     if table_size is not None:
         n_v, n_P = table_size
@@ -913,6 +925,7 @@ def optimize_velocity(
     tau=TAU_W,
     switch_weight=SWITCH_WEIGHT,
     w_pred=None,
+    overspeed=0.0,
     v_init=None,
     table_size: tuple[int, int] | None = TABLE_SIZE,
 ) -> EcoResult:
@@ -921,16 +934,17 @@ def optimize_velocity(
     ONE route and ONE vehicle; pure, jit- and vmap-able. n_steps and table_size are static;
     lambda_t (J/s, >= 0, the price of a second), lam_b (Level 2's costate, < 0, about -2),
     learning_rate (m/s), final_lr_ratio, tau (W), switch_weight (J/(m/s^2)), w_pred (rad/s, ()
-    or (N,); Level 3's engine speed), v_init ((N,) m/s or None) and the vehicle's leaves are
-    arrays, so new values do not recompile.
+    or (N,); Level 3's engine speed), overspeed (m/s, `speed_bounds`), v_init ((N,) m/s or
+    None) and the vehicle's leaves are arrays, so new values do not recompile.
 
     Problem: minimise `eco_cost(route, vp, v, lambda_t, lam_b, tau)` plus the switching proxy
     `eco_regulariser(route, v, switch_weight)` (J per m/s^2 of acceleration change; 0: the
     surrogate alone, whose optimum is a pulse-and-glide sawtooth that Level 1 and the plant
     pay in mode switches) over the node speeds v: (N,) subject to
-      - bounds lo <= v <= hi (`speed_bounds`): hi = Level 3's own profile (so the optimum is
-        only ever slower than Level 3, where that pays), lo = 0 at stops and V_CRAWL elsewhere,
-        the first and last node fixed to Level 3's;
+      - bounds lo <= v <= hi (`speed_bounds`): hi = Level 3's own profile with its cruise
+        speed raised by ``overspeed`` (m/s) where the route allows the cruise speed (0: the
+        optimum is only ever slower than Level 3, where that pays), lo = 0 at stops and
+        V_CRAWL elsewhere, the first and last node fixed to Level 3's;
       - acceleration limits per cell: -a_min <= (v_i+1^2 - v_i^2) / (2 ds) <= a_fwd(v_i, grade_i)
         (`acceleration_limits`; a_fwd as Level 3's forward pass).
     Method: the soft-minimised Hamiltonian is tabulated once over (speed, power) (`eco_table`,
@@ -950,7 +964,7 @@ def optimize_velocity(
 
     Returns `EcoResult` (profile leaves (N,), history (n_steps,), the rest ()).
     """
-    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size)
+    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size, overspeed)
     return _eco_solve(route, vp, lambda_t, lam_b, setup, n_steps=n_steps,
                       learning_rate=learning_rate, final_lr_ratio=final_lr_ratio, tau=tau,
                       switch_weight=switch_weight, w_pred=w_pred, v_init=v_init)
@@ -1018,7 +1032,8 @@ def _eco_solve(route, vp, lambda_t, lam_b, setup: _EcoSetup, *, n_steps, learnin
     status = jnp.where(l3.feasible, ECO_OK, ECO_STALL) | jnp.where(finite, 0, ECO_NONFINITE)
     return EcoResult(
         profile=prof,
-        v_level3=hi,
+        v_level3=l3.v,
+        v_upper=hi,
         cost=jnp.sum(soft.energy) + lambda_t * prof.trip_time,
         cost_exact=energy + lambda_t * prof.trip_time,
         regulariser=eco_regulariser(route, v_ret, sw),
@@ -1045,6 +1060,7 @@ def match_trip_time(
     tau=TAU_W,
     switch_weight=SWITCH_WEIGHT,
     w_pred=None,
+    overspeed=0.0,
     lambda_t_range=LAMBDA_T_RANGE,
     table_size: tuple[int, int] | None = TABLE_SIZE,
 ):
@@ -1062,7 +1078,7 @@ def match_trip_time(
     bottom of the range), ECO_TARGET_MISSED when the trip time is off by more than
     MATCH_RTOL (0.5 %) for another reason (bisection noise of a non-convex problem).
     """
-    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size)
+    setup = _eco_setup(route, vp, lam_b, tau, w_pred, table_size, overspeed)
     dtype = setup.hi.dtype
     target = jnp.asarray(target_trip_time, dtype)
     u_lo = jnp.log(jnp.asarray(lambda_t_range[0], dtype))
@@ -1103,13 +1119,14 @@ def match_trip_time(
 
 # ----------------------------------------------------------------------------- batched
 def _optimize_batch(routes, vehicles, lambda_t, lam_b, w, learning_rate, final_lr_ratio, tau,
-                    switch_weight, n_steps, table_size):
+                    switch_weight, overspeed, n_steps, table_size):
     TRACES["optimize_velocity_batch"] += 1
 
     def one(route, vp, lt, lb, w_i):
         return optimize_velocity(route, vp, lt, lb, n_steps=n_steps, learning_rate=learning_rate,
                                  final_lr_ratio=final_lr_ratio, tau=tau,
-                                 switch_weight=switch_weight, w_pred=w_i, table_size=table_size)
+                                 switch_weight=switch_weight, w_pred=w_i, overspeed=overspeed,
+                                 table_size=table_size)
 
     return jax.vmap(one)(routes, vehicles, lambda_t, lam_b, w)
 
@@ -1129,6 +1146,7 @@ def optimize_velocity_batch(
     tau=TAU_W,
     switch_weight=SWITCH_WEIGHT,
     w_pred=None,
+    overspeed=0.0,
     table_size: tuple[int, int] | None = TABLE_SIZE,
 ) -> EcoResult:
     """`optimize_velocity` for a batch through one jitted `vmap`; equals a loop of single calls.
@@ -1139,8 +1157,8 @@ def optimize_velocity_batch(
     for every combination, repeat them). lambda_t, lam_b: () or (B,); w_pred: None (each
     vehicle's w_pred) or rad/s broadcastable to (B, N). New values of any of these reuse the
     compilation (TRACES["optimize_velocity_batch"] counts traces); learning_rate,
-    final_lr_ratio, tau, switch_weight: scalars shared by the batch. Returns `EcoResult` with a
-    leading axis B.
+    final_lr_ratio, tau, switch_weight, overspeed: scalars shared by the batch. Returns
+    `EcoResult` with a leading axis B.
     """
     if not isinstance(routes, Route):
         routes = pad_routes(list(routes))
@@ -1178,4 +1196,4 @@ def optimize_velocity_batch(
     if np.any(lt < 0):
         raise ValueError(f"optimize_velocity_batch: lambda_t must be >= 0 J/s (got {lt})")
     return _optimize_vmap(routes, vehicles, lt, lb, w, learning_rate, final_lr_ratio, tau,
-                          switch_weight, n_steps=n_steps, table_size=table_size)
+                          switch_weight, overspeed, n_steps=n_steps, table_size=table_size)
