@@ -32,7 +32,19 @@ from .levels.powersplit import (
     mode_gear_split,
     optimal_mode_gear,
 )
-from .levels.velocity import Prediction, Profile, predict_batch, predict_velocity
+from .levels.velocity import (
+    EcoResult,
+    Prediction,
+    Profile,
+    eco_cost,
+    eco_cost_exact,
+    match_trip_time,
+    optimize_velocity,
+    optimize_velocity_batch,
+    predict_batch,
+    predict_velocity,
+    profile_from_speed,
+)
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, vehicle_axes
 from .route import Route, RouteError, pad_routes
 from .shard import map_batch, use_host_devices
@@ -40,7 +52,9 @@ from .strategies import STRATEGIES, Options, Result, simulate, simulate_batch
 from .switching import SwitchCostParams, eps_G, eps_M, switch_cost_matrix
 
 __all__ = [
-    "STRATEGIES", "CostateResult", "Guards", "HorizonResult", "Level1Result", "Options",
+    "STRATEGIES", "CostateResult", "EcoResult", "Guards", "HorizonResult", "Level1Result",
+    "Options", "eco_cost", "eco_cost_exact", "match_trip_time", "optimize_velocity",
+    "optimize_velocity_batch", "profile_from_speed",
     "Prediction", "Profile", "Result", "Route", "RouteError", "Split", "SwitchCostParams",
     "SweepError", "Switching", "Transition", "VehicleError", "VehicleParams", "ViterbiResult",
     "bisect_costate", "closed_form_mode", "costate_batch", "costate_product", "dense_transition",

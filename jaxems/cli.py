@@ -261,7 +261,8 @@ def register_simulate(sub) -> None:
     p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
                    help="usable battery energy in MJ (overrides the vehicle file)")
     p.add_argument("--strategy", default="multilevel", metavar="NAME",
-                   help="conventional, baseline, multilevel (default), multilevel-mpc, dp-bound")
+                   help="conventional, baseline, multilevel (default), multilevel-mpc, "
+                        "dp-bound, multilevel-eco")
     p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
     p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
                    help="multilevel iterations (default 2)")

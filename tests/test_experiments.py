@@ -136,3 +136,12 @@ def test_table8_bad_input_fails_before_running(capsys):
     assert "no such route file" in err and "table8: short_track" not in err
     assert table7.main(["--mass", "-1"]) == 1
     assert "mass_kg" in capsys.readouterr().err
+
+
+def test_eco_velocity_bad_input_fails_before_running(capsys):
+    eco = _script("eco_velocity")
+    assert eco.main(["--routes", "short_track,no_such_route"]) == 1
+    err = capsys.readouterr().err
+    assert "no such route file" in err and "eco: short_track" not in err
+    assert eco.main(["--mass", "-1"]) == 1
+    assert "mass_kg" in capsys.readouterr().err

@@ -20,6 +20,7 @@ import pytest
 from jaxems import report as rp
 from jaxems import strategies as st
 from jaxems import sweep as sw
+from jaxems.levels.velocity import velocity_profile
 
 # one worker computes this module's shared fixture (pytest-xdist --dist loadgroup)
 pytestmark = pytest.mark.xdist_group("test_sweep")
@@ -205,3 +206,28 @@ def test_dask_two_worker_processes_give_the_same_table(sweep_a, tmp_path, jax_ca
     assert summary.computed_chunks == 4
     same_table(sw.load_sweep(tmp_path / "dask"), sw.load_sweep(out))
     assert jax.config.jax_enable_x64  # the test process's own setting is untouched
+
+
+def test_eco_strategy_in_a_sweep_gets_room_for_its_own_trip(tmp_path):
+    """multilevel-eco is one more strategy of the sweep file; its step grid has room for a
+    trip eco_time_ratio times Level 3's (matched within 0.5 %)."""
+    d = tmp_path / "eco"
+    p = make_sweep_a(d)
+    text = p.read_text(encoding="utf-8").replace(
+        'strategies = ["conventional"]', 'strategies = ["conventional", "multilevel-eco"]')
+    p.write_text(text + '\n[options.multilevel-eco]\neco_time_ratio = 1.3\n', encoding="utf-8")
+    cfg = sw.load_config(p)
+    assert "multilevel-eco" in cfg.strategies
+    chunk = [c for c in sw.plan_chunks(cfg) if c.route_index == 0][0]
+    pts = cfg.points()
+    vb = sw.vehicle_batch(cfg.vehicle, [pts[i] for i in chunk.grid_index])
+    route = cfg.routes[0].route
+    with sw.precision_scope("float64"):
+        n_eco = sw.steps_for_route(cfg, route, [chunk], pts)
+        n_l3 = st.steps_for_batch(route, vb, 1.0)
+        trip = max(float(velocity_profile(route, jax.tree_util.tree_map(lambda a: a[i], vb))
+                         .trip_time) for i in range(len(chunk.grid_index)))
+    assert n_eco >= 1.3 * trip and n_eco >= n_l3
+    p.write_text(text + '\n[options.multilevel-eco]\neco_time_ratio = 0.5\n', encoding="utf-8")
+    with pytest.raises(sw.SweepError, match="eco_time_ratio"):
+        sw.load_config(p)
