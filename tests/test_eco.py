@@ -435,3 +435,27 @@ def test_overspeed_band_pays_at_level3s_trip_time():
         float(l3.v[n_nodes(HILL) - 1]), abs=1e-6)
     e_0, e_5 = float(r0.energy_J), float(r5.energy_J)
     assert e_5 < 0.98 * min(e_0, e_l3), (e_5, e_0, e_l3)
+
+
+def test_strategy_step_grid_holds_a_slow_eco_trip():
+    """multilevel-eco with a given (small) lambda_t drives slower than Level 3: its step grid is
+    sized from its own trip time, computed on the host (`strategies.steps_for_batch`)."""
+    from jaxems import strategies as S
+    from jaxems.io import load_route
+
+    route = load_route("short_track")
+    vp = VP.replace(mass=25000.0)
+    opts = S.Options(eco_lambda_t=300.0)
+    n3 = S.steps_for_batch(route, vp)
+    n = S.steps_for_batch(route, vp, 1.0, "multilevel-eco", opts)
+
+    @jax.jit
+    def trips(route, vp):  # Level 3's trip and the eco optimum's at lambda_t = 300 J/s
+        pred3 = S.level3(route, vp, 1.0, n3)
+        lam_b = S.eco_costate(vp, pred3, 1.0)
+        return pred3.trip_time, optimize_velocity(route, vp, 300.0, lam_b,
+                                                  overspeed=5 / 3.6).trip_time
+
+    t3, t_eco = (float(x) for x in trips(route, vp))
+    assert t_eco > 1.05 * t3  # it is slower
+    assert n >= t_eco and n >= n3
