@@ -94,11 +94,11 @@ def plot_route(route: str, results: dict, out: Path) -> str:
     elev = np.concatenate([[0.0], np.cumsum(grade[:-1] * ds)])
     fig, (ax, ax2) = plt.subplots(2, 1, sharex=True, figsize=(11, 6),
                                   gridspec_kw={"height_ratios": [3, 1]})
-    for name, res in results.items():
+    ax.plot(s_km, np.asarray(r.vmax)[m] * 3.6, color="0.6", lw=0.8, ls=":", label="speed limit")
+    for (name, res), lw in zip(results.items(), (2.0, 0.9), strict=False):
         prof = res.prediction.profile
         pm = np.asarray(prof.mask)
-        ax.plot(np.asarray(prof.s)[pm] / 1e3, np.asarray(prof.v)[pm] * 3.6, lw=0.9, label=name)
-    ax.plot(s_km, np.asarray(r.vmax)[m] * 3.6, "k:", lw=0.7, label="speed limit")
+        ax.plot(np.asarray(prof.s)[pm] / 1e3, np.asarray(prof.v)[pm] * 3.6, lw=lw, label=name)
     ax.set_ylabel("v [km/h]")
     ax.legend(loc="lower right")
     ax.set_title(f"{route}: predicted speed, Level 3 (multilevel) and eco-driving")
