@@ -149,6 +149,27 @@ def test_limits_piecewise_matches_dp():
     assert abs(fuel - dp) / dp < 5e-3, (fuel, dp)
 
 
+def test_limits_solution_does_not_depend_on_the_piece_budget():
+    """I1 splits every violating piece per round; pieces are independent between their
+    boundaries, so any budget that suffices gives the same pieces, costate and path; a budget
+    that does not is flagged."""
+    dt = 3.0
+    P_d, v = make_route(VP_SMALL, LIM_SEGS)
+    w = np.full(len(v), W1100)
+    r16 = b.solve_costate(VP_SMALL, P_d, v, w, None, dt, max_pieces=16)
+    n = int(r16.n_pieces)
+    assert n >= 3 and not int(r16.status) & b.PIECES_EXHAUSTED
+    r_n = b.solve_costate(VP_SMALL, P_d, v, w, None, dt, max_pieces=n)
+    assert int(r_n.n_pieces) == n and int(r_n.status) == int(r16.status)
+    np.testing.assert_array_equal(np.asarray(r_n.boundaries)[: n + 1],
+                                  np.asarray(r16.boundaries)[: n + 1])
+    for name in ("lam", "E_b", "fuel"):
+        np.testing.assert_allclose(np.asarray(getattr(r_n, name)),
+                                   np.asarray(getattr(r16, name)), rtol=1e-12, atol=1e-6)
+    short = b.solve_costate(VP_SMALL, P_d, v, w, None, dt, max_pieces=n - 1)
+    assert int(short.status) & b.PIECES_EXHAUSTED
+
+
 # ------------------------------------------------------------------------------------- I2
 def test_minimal_switching_known_cases():
     T = 100
