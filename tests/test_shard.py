@@ -95,7 +95,7 @@ def test_chunk_plan_bounds(B, n, chunk):
     assert total >= B
     assert total - B < n * k + n  # padding: less than one item per chunk, plus rounding
     # a chunk never exceeds the requested size (None: one chunk of each device's share)
-    assert 1 <= c <= (chunk if chunk is not None else -(-B // n))
+    assert c >= 1 and c <= (chunk if chunk is not None else -(-B // n))
     assert chunk is not None or k == 1
 
 
