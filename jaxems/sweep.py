@@ -570,9 +570,9 @@ def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],
                 continue
             seen.add(c.grid_index)
             vb = vehicle_batch(cfg.vehicle, [points[i] for i in c.grid_index])
-            n = max(n, int(steps_for_batch(route, vb, cfg.dt)))
-            if eco:
-                n = max(n, int(steps_for_batch(route, vb, cfg.dt, "multilevel-eco", eco_opts)))
+            # multilevel-eco's count covers Level 3's (the other strategies') too
+            n = max(n, int(steps_for_batch(route, vb, cfg.dt, "multilevel-eco" if eco else None,
+                                           eco_opts)))
     return n
 
 

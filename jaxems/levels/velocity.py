@@ -266,13 +266,8 @@ def _cell_state(route: Route, vp: VehicleParams, prof: Profile, t):
     v_t = jnp.where(moving, v_t, 0.0)
     s_t = jnp.minimum(i * ds + frac * ds, prof.length)
     # road work: per cell F_0 = k_air v^2 + F_g(grade); v^2 linear in s within the cell
-    k_air = 0.5 * vp.c_w * vp.area * vp.rho
-    f_grade = pt.road_load(vp, 0.0, grade)  # rolling + grade force per cell (N)
-    cell_w = jnp.where(
-        prof.mask[1:],
-        (k_air * 0.5 * (v[:-1] ** 2 + v[1:] ** 2) + f_grade[:-1]) * ds,
-        0.0,
-    )
+    k_air, f_grade = _road_forces(route, vp, dtype)
+    cell_w = jnp.where(prof.mask[1:], _cell_work(route, vp, v), 0.0)
     W_nodes = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(cell_w)])
     y = frac  # fraction of the cell's distance
     W_t = W_nodes[i] + jnp.where(
@@ -336,13 +331,24 @@ def _last_node(mask):
     return mask & ~jnp.concatenate([mask[1:], jnp.zeros(1, bool)])
 
 
-def _total_work(route: Route, vp: VehicleParams, prof: Profile):
-    v = prof.v
+def _road_forces(route: Route, vp: VehicleParams, dtype):
+    """(k_air () N s^2/m^2, f_grade (N,) N): F_0 = k_air v^2 + f_grade per cell, f_grade the
+    rolling and grade force (`powertrain.road_load` at v = 0)."""
     k_air = 0.5 * vp.c_w * vp.area * vp.rho
-    grade = jnp.asarray(route.grade, v.dtype)
-    f_grade = pt.road_load(vp, 0.0, grade)
-    cell_w = (k_air * 0.5 * (v[:-1] ** 2 + v[1:] ** 2) + f_grade[:-1]) * route.ds
-    return jnp.sum(jnp.where(prof.mask[1:], cell_w, 0.0))
+    return k_air, pt.road_load(vp, 0.0, jnp.asarray(route.grade, dtype))
+
+
+def _cell_work(route: Route, vp: VehicleParams, v):
+    """(N-1,) road-load work (J) over each cell at node speeds v: (N,), v^2 linear in s within
+    the cell (constant acceleration), so int F_0 ds = (k_air (v_i^2 + v_i+1^2) / 2 + f_grade) ds.
+    Padding cells are not masked."""
+    k_air, f_grade = _road_forces(route, vp, v.dtype)
+    ds = jnp.asarray(route.ds, v.dtype)
+    return (k_air * 0.5 * (v[:-1] ** 2 + v[1:] ** 2) + f_grade[:-1]) * ds
+
+
+def _total_work(route: Route, vp: VehicleParams, prof: Profile):
+    return jnp.sum(jnp.where(prof.mask[1:], _cell_work(route, vp, prof.v), 0.0))
 
 
 # ----------------------------------------------------------------------------- host wrappers
@@ -404,6 +410,36 @@ def _batch_size(leaf) -> int | None:
     return int(np.shape(leaf)[0]) if np.ndim(leaf) >= 1 else None
 
 
+def _paired_batch(routes, vehicles, w_pred, name: str, single: str):
+    """Routes and vehicles of a batch entry point paired one to one: (routes (B, N) leaves,
+    vehicles (B,) leaves, w (B, N) rad/s). A list is padded / stacked; a single route or
+    vehicle is repeated B times; w_pred None means each vehicle's own. name, single: the
+    caller and its one-configuration form, for the messages."""
+    if not isinstance(routes, Route):
+        routes = pad_routes(list(routes))
+    if not isinstance(vehicles, VehicleParams):
+        vehicles = stack_vehicles(list(vehicles))
+    br = _batch_size(routes.ds)
+    bv = _batch_size(vehicles.mass)
+    if br is None and bv is None:
+        raise ValueError(f"{name}: neither routes nor vehicles are a batch; use {single}")
+    if br is not None and bv is not None and br != bv:
+        raise ValueError(f"{name}: {br} routes but {bv} vehicles (pair them one to one)")
+    B = br if br is not None else bv
+    if br is None:
+        routes = Route(*(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in routes))
+    if bv is None:
+        vehicles = VehicleParams(
+            *(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in vehicles)
+        )
+    N = np.shape(routes.grade)[-1]
+    dtype = np.result_type(np.asarray(routes.grade).dtype, np.float32)
+    w = vehicles.w_pred if w_pred is None else w_pred
+    w = np.asarray(w, dtype)
+    w = np.broadcast_to(w[:, None] if w_pred is None else w, (B, N))
+    return routes, vehicles, w
+
+
 def predict_batch(
     routes: Route | Sequence[Route],
     vehicles: VehicleParams | Sequence[VehicleParams],
@@ -421,30 +457,8 @@ def predict_batch(
     element (route b with vehicle b); for every combination, repeat them. All members share
     one static number of steps (the longest trip). Returns a `Prediction` with leading axis B.
     """
-    if not isinstance(routes, Route):
-        routes = pad_routes(list(routes))
-    if not isinstance(vehicles, VehicleParams):
-        vehicles = stack_vehicles(list(vehicles))
-    br = _batch_size(routes.ds)
-    bv = _batch_size(vehicles.mass)
-    if br is None and bv is None:
-        raise ValueError(
-            "predict_batch: neither routes nor vehicles are a batch; use predict_velocity"
-        )
-    if br is not None and bv is not None and br != bv:
-        raise ValueError(f"predict_batch: {br} routes but {bv} vehicles (pair them one to one)")
-    B = br if br is not None else bv
-    if br is None:
-        routes = Route(*(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in routes))
-    if bv is None:
-        vehicles = VehicleParams(
-            *(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in vehicles)
-        )
-    N = np.shape(routes.grade)[-1]
-    if w_pred is None:
-        w = jnp.broadcast_to(jnp.asarray(vehicles.w_pred)[:, None], (B, N))
-    else:
-        w = jnp.broadcast_to(jnp.asarray(w_pred), (B, N))
+    routes, vehicles, w = _paired_batch(routes, vehicles, w_pred, "predict_batch",
+                                        "predict_velocity")
     prof = _profile_vmap(routes, vehicles, w)
     trip = float(jnp.max(prof.trip_time))
     need = int(math.floor(trip / dt)) + 1
@@ -585,8 +599,12 @@ def soft_min_hamiltonian(H, P_d, vp: VehicleParams, tau=None):
         e = jnp.where(ok, jnp.exp(-(safe - ref[..., None]) / tau), 0.0)
         s = jnp.sum(e, axis=-1)
         h = ref - tau * jnp.log(jnp.where(any_ok, s, 1.0))
-    penalty = P_PENALTY_W + 2.0 * jnp.maximum(P_d, 0.0) / vp.eta_e
-    return jnp.where(any_ok, h, penalty)
+    return jnp.where(any_ok, h, _no_delivery_penalty(vp, P_d))
+
+
+def _no_delivery_penalty(vp: VehicleParams, P_d):
+    """H (W) of a demand no (mode, gear) can deliver: finite and increasing in P_d."""
+    return P_PENALTY_W + 2.0 * jnp.maximum(P_d, 0.0) / vp.eta_e
 
 
 class EcoTable(NamedTuple):
@@ -646,8 +664,7 @@ def table_hamiltonian(tab: EcoTable, vp: VehicleParams, P_d, v):
     fx, fy = x - i, y - j
     h = ((1 - fx) * ((1 - fy) * tab.H[i, j] + fy * tab.H[i, j + 1])
          + fx * ((1 - fy) * tab.H[i + 1, j] + fy * tab.H[i + 1, j + 1]))
-    penalty = P_PENALTY_W + 2.0 * jnp.maximum(P_d, 0.0) / vp.eta_e
-    return jnp.where(P_d > tab.P_hi, penalty, h)
+    return jnp.where(P_d > tab.P_hi, _no_delivery_penalty(vp, P_d), h)
 
 
 def _cell_model(route: Route, vp: VehicleParams, v):
@@ -660,11 +677,8 @@ def _cell_model(route: Route, vp: VehicleParams, v):
     vi, vn = v[:-1], v[1:]
     vsum = jnp.maximum(vi + vn, V_CRAWL)
     dt = 2.0 * ds / vsum
-    k_air = 0.5 * vp.c_w * vp.area * vp.rho
-    f_rg = pt.road_load(vp, 0.0, grade[:-1])  # rolling + grade force (N)
-    work = (k_air * 0.5 * (vi * vi + vn * vn) + f_rg) * ds
     dke = 0.5 * vp.mass * (vn * vn - vi * vi)
-    return (dke + work) / dt, 0.5 * vsum, dt, mask[1:]
+    return (dke + _cell_work(route, vp, v)) / dt, 0.5 * vsum, dt, mask[1:]
 
 
 def _cells(P_d, v_mean, dt, valid, h) -> EcoCells:
@@ -686,19 +700,22 @@ def eco_cells(route: Route, vp: VehicleParams, v, lam_b, tau=None, table=None) -
     """
     P_d, v_mean, dt, valid = _cell_model(route, vp, v)
     if table is None:
-        lam = jnp.asarray(lam_b, P_d.dtype)
-        H_tab = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
-        h = soft_min_hamiltonian(H_tab, P_d, vp, tau)
+        h = soft_min_hamiltonian(_cell_hamiltonians(vp, P_d, v_mean, lam_b), P_d, vp, tau)
     else:
         h = table_hamiltonian(table, vp, P_d, v_mean)
     return _cells(P_d, v_mean, dt, valid, h)
 
 
+def _cell_hamiltonians(vp, P_d, v_mean, lam_b):
+    """(N-1, 4, G) Level 1's H of every mode and gear at each cell's mean power and speed."""
+    lam = jnp.asarray(lam_b, P_d.dtype)
+    return jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
+
+
 def _soft_and_exact(route, vp, v, lam_b, tau):
     """(soft, exact) `EcoCells` of node speeds v from one evaluation of the (mode, gear) table."""
     P_d, v_mean, dt, valid = _cell_model(route, vp, v)
-    lam = jnp.asarray(lam_b, P_d.dtype)
-    H_tab = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(vp, P_d, v_mean, lam).H
+    H_tab = _cell_hamiltonians(vp, P_d, v_mean, lam_b)
     soft = soft_min_hamiltonian(H_tab, P_d, vp, tau)
     hard = soft_min_hamiltonian(H_tab, P_d, vp, None)
     return _cells(P_d, v_mean, dt, valid, soft), _cells(P_d, v_mean, dt, valid, hard)
@@ -1160,34 +1177,10 @@ def optimize_velocity_batch(
     final_lr_ratio, tau, switch_weight, overspeed: scalars shared by the batch. Returns
     `EcoResult` with a leading axis B.
     """
-    if not isinstance(routes, Route):
-        routes = pad_routes(list(routes))
-    if not isinstance(vehicles, VehicleParams):
-        vehicles = stack_vehicles(list(vehicles))
-    br = _batch_size(routes.ds)
-    bv = _batch_size(vehicles.mass)
-    if br is None and bv is None:
-        raise ValueError(
-            "optimize_velocity_batch: neither routes nor vehicles are a batch; use "
-            "optimize_velocity"
-        )
-    if br is not None and bv is not None and br != bv:
-        raise ValueError(
-            f"optimize_velocity_batch: {br} routes but {bv} vehicles (pair them one to one)"
-        )
-    B = br if br is not None else bv
-    if br is None:
-        routes = Route(*(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in routes))
-    if bv is None:
-        vehicles = VehicleParams(
-            *(np.broadcast_to(np.asarray(x), (B, *np.shape(x))) for x in vehicles)
-        )
-    N = np.shape(routes.grade)[-1]
-    dtype = np.result_type(np.asarray(routes.grade).dtype, np.float32)
-    if w_pred is None:
-        w = np.broadcast_to(np.asarray(vehicles.w_pred, dtype)[:, None], (B, N))
-    else:
-        w = np.broadcast_to(np.asarray(w_pred, dtype), (B, N))
+    routes, vehicles, w = _paired_batch(routes, vehicles, w_pred, "optimize_velocity_batch",
+                                        "optimize_velocity")
+    B = w.shape[0]
+    dtype = w.dtype
     lt = np.broadcast_to(np.asarray(lambda_t, dtype), (B,))
     lb = np.broadcast_to(np.asarray(lam_b, dtype), (B,))
     for name, x in (("lambda_t", lt), ("lam_b", lb)):
