@@ -102,11 +102,12 @@ def _motor_limit(f, w):
 # ------------------------------------------------------------------------------- Level 3
 def a_fwd(vp, v, grade, w):
     """Forward-pass acceleration (m/s^2): min(a_max, (F_max(v) - F_0) / m), F_max of the
-    engine alone at speed w behind a CVT, capped by the peak torque in gear 1 (scalars)."""
+    engine alone at speed w behind a CVT, capped by the peak torque in gear 1 (scalar w and
+    grade; v a scalar or an array)."""
     f = vp if isinstance(vp, SimpleNamespace) else _veh(vp)
     p_max = np.interp(w, f.te_max_w, f.te_max) * w
-    f_max = min(p_max / max(v, 1e-6), float(np.max(f.te_max) * f.gear_ratio[0] * f.r_d))
-    return min(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
+    f_max = np.minimum(p_max / np.maximum(v, 1e-6), np.max(f.te_max) * f.gear_ratio[0] * f.r_d)
+    return np.minimum(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
 
 
 def ref_profile(route: Route, vp: VehicleParams, w=None):
@@ -942,13 +943,6 @@ def ref_eco_cell(vp: VehicleParams, v0, v1, grade, ds):
     return P_d, 0.5 * vsum, dt
 
 
-def _a_fwd_array(f, v, grade, w):
-    """`a_fwd` for arrays v (scalar grade and w)."""
-    p_max = np.interp(w, f.te_max_w, f.te_max) * w
-    f_max = np.minimum(p_max / np.maximum(v, 1e-6), np.max(f.te_max) * f.gear_ratio[0] * f.r_d)
-    return np.minimum(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
-
-
 class RefEco(NamedTuple):
     """`ref_eco_dp`'s optimum: v: (n,) node speeds (m/s); cost: J (energy + lambda_t x trip
     time, stops included); energy: J (sum H dt); trip_time: s; envelope: (n,) Level 3's
@@ -999,7 +993,7 @@ def ref_eco_dp(route: Route, vp: VehicleParams, lambda_t, lam_b, v_grid, h_min=N
     for i in range(n - 1):
         a, b = cand[i][:, None], cand[i + 1][None, :]
         acc = (b * b - a * a) / (2.0 * ds)
-        ok = (acc <= _a_fwd_array(f, a, g[i], ww[i]) + acc_tol) & (acc >= -f.a_min - acc_tol)
+        ok = (acc <= a_fwd(f, a, g[i], ww[i]) + acc_tol) & (acc >= -f.a_min - acc_tol)
         P_d, v_mean, dt = ref_eco_cell(f, a, b, g[i], ds)
         P_d, v_mean, dt = np.broadcast_arrays(P_d, v_mean, dt)
         cost = np.full(ok.shape, np.inf)

@@ -31,8 +31,8 @@ from jaxems.levels.velocity import (
 )
 from jaxems.params import load_vehicle
 from jaxems.reference import (
-    _a_fwd_array,
     _veh,
+    a_fwd,
     ref_eco_cell,
     ref_eco_dp,
     ref_hamiltonian_min,
@@ -120,7 +120,7 @@ def _check_constraints(route, vp, res, tol=1e-9):
     ds = float(route.ds)
     g = _valid(route, route.grade)
     a = (v[1:] ** 2 - v[:-1] ** 2) / (2 * ds)
-    a_hi = np.array([_a_fwd_array(f, v[i], g[i], f.w_pred) for i in range(n - 1)])
+    a_hi = np.array([a_fwd(f, v[i], g[i], f.w_pred) for i in range(n - 1)])
     assert np.all(a <= a_hi + 1e-6)
     assert np.all(a >= -f.a_min - 1e-6)
     assert float(res.acc_violation) < 1e-3  # what the restoration had left to remove
@@ -143,7 +143,7 @@ def test_ref_eco_dp_equals_brute_force():
     best = math.inf
     for path in np.array(np.meshgrid(*cand, indexing="ij")).reshape(n, -1).T:
         a = (path[1:] ** 2 - path[:-1] ** 2) / 200.0
-        a_hi = np.array([_a_fwd_array(f, path[i], g[i], f.w_pred) for i in range(n - 1)])
+        a_hi = np.array([a_fwd(f, path[i], g[i], f.w_pred) for i in range(n - 1)])
         if np.any(a > a_hi + 1e-9) or np.any(a < -f.a_min - 1e-9):
             continue
         P, vm, dt = ref_eco_cell(VP, path[:-1], path[1:], g[:-1], 100.0)
@@ -227,7 +227,7 @@ def test_projection_is_feasible(raw, which):
     f = _veh(VP)
     g = np.asarray(route.grade)[:n]
     a = (vv[1:] ** 2 - vv[:-1] ** 2) / (2 * float(route.ds))
-    a_hi = np.array([_a_fwd_array(f, hi_[i], g[i], f.w_pred) for i in range(n - 1)])
+    a_hi = np.array([a_fwd(f, hi_[i], g[i], f.w_pred) for i in range(n - 1)])
     assert np.all(a <= a_hi + 1e-9) and np.all(a >= -f.a_min - 1e-9)  # traction at v_ref = hi
     again = np.asarray(PROJECT(route, VP, jnp.asarray(v), hi, lo, hi))
     np.testing.assert_allclose(again, v, atol=1e-12)
