@@ -29,6 +29,8 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   (the best mode at the step's gear for a costate), `ref_end` (E_b(t_f) for a constant
   costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
   `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
+- Plans on the plant: `ref_battery_path` (a plan's battery energy piece by piece, each piece
+  from Level 2's start value, held within the battery's limits step by step).
 - `reference_plan`: iteration 0 of the multilevel strategy's planning pipeline, the same stages
   as `kernel_plan` (which runs them through the JAX kernels): Level 3 prediction -> Level 2
   costate by bisection (charge sustaining, no battery limits, gears from the constant engine
@@ -1019,3 +1021,31 @@ def ref_eco_dp(route: Route, vp: VehicleParams, lambda_t, lam_b, v_grid, h_min=N
 
 
 __all__ += ["RefEco", "ref_eco_cell", "ref_eco_dp", "ref_hamiltonian_min"]
+
+
+# ------------------------------------------------------------------------------ plans
+def ref_battery_path(E0, E_max, dE, pid, target):
+    """A plan's battery energy, held within [0, E_max] step by step: loop over the steps.
+
+    dE: (T,) each step's change (J); pid: (T,) the piece of each step (non-decreasing);
+    target: (K,) each piece's change. A piece starts from E0 plus the targets before it (within
+    the limits). Returns (E: (T,) at each step's start, E_end: (K,) at each piece's end (its
+    goal where it has no steps), goal: (K,) E0 plus the targets up to and with the piece, within
+    the limits)."""
+    dE, pid, target = np.asarray(dE, float), np.asarray(pid), np.asarray(target, float)
+    cum = E0 + np.cumsum(target)
+    goal = np.clip(cum, 0.0, E_max)
+    start = np.clip(cum - target, 0.0, E_max)
+    E = np.empty(dE.shape[0])
+    E_end = goal.copy()
+    x = E0
+    for k in range(dE.shape[0]):
+        if k == 0 or pid[k] != pid[k - 1]:
+            x = start[pid[k]]
+        E[k] = x
+        x = min(max(x + dE[k], 0.0), E_max)
+        E_end[pid[k]] = x
+    return E, E_end, goal
+
+
+__all__ += ["ref_battery_path"]

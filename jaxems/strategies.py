@@ -186,9 +186,49 @@ def steps_energy(vp, pred, mode, gear, P_b, dt):
     return jnp.where(pred.mask, dE, 0.0)
 
 
-def plan_energy(vp, dE):
-    """(T,) battery energy at the start of each step, from each step's change dE: (T,)."""
-    return vp.soc0 * vp.E_b_max + jnp.concatenate([jnp.zeros(1, dE.dtype), jnp.cumsum(dE)[:-1]])
+def _clamp_compose(f, g):
+    """Maps x -> min(max(x + a, l), h) as (a, l, h), l <= h: g after f (associative)."""
+    a1, l1, h1 = f
+    a2, l2_, h2 = g
+    return a1 + a2, jnp.clip(l1 + a2, l2_, h2), jnp.clip(h1 + a2, l2_, h2)
+
+
+def battery_path(vp, dE, pid, target):
+    """The battery energy (J) a plan expects, piece by piece, within the battery's limits.
+
+    dE: (T,) each step's energy change; pid: (T,) the piece of each step (non-decreasing);
+    target: (K,) each piece's energy change (`piece_targets`). Each piece starts where the
+    targets put it, E_b(t_0) plus the targets before it (Level 2's plan), and within it the
+    energy is held in [0, E_b_max] as the plant holds it: recuperation beyond a full battery goes
+    to the service brakes, an empty battery delivers nothing. Level 1 has no battery state: on
+    a long descent its plan may recuperate more than the battery holds (a piece Level 2 marks
+    saturated), elsewhere drain it below empty and recover before the piece ends; without the
+    limits the plan's energy runs far outside what the plant can store, and the battery-power
+    feedback chases it for the rest of the route.
+
+    Returns (E: (T,) energy at the start of each step, E_end: (K,) at each piece's end, goal:
+    (K,) where the targets put each piece's end, within the limits). An associative scan of
+    the clamped steps (each step x -> min(max(x + dE, 0), E_b_max), a piece's first step from
+    its start value)."""
+    dtype = dE.dtype
+    E_max = jnp.asarray(vp.E_b_max, dtype)
+    E0 = jnp.asarray(vp.soc0 * vp.E_b_max, dtype)
+    K = target.shape[0]
+    T = dE.shape[0]
+    ends = jnp.clip(E0 + jnp.cumsum(target), 0.0, E_max)  # (K,)
+    starts = jnp.clip(E0 + jnp.cumsum(target) - target, 0.0, E_max)
+    first = jnp.concatenate([jnp.ones(1, bool), pid[1:] != pid[:-1]])
+    c = jnp.clip(starts[pid] + dE, 0.0, E_max)  # a piece's first step: a constant map
+    zero = jnp.zeros_like(dE)
+    maps = (jnp.where(first, zero, dE), jnp.where(first, c, zero),
+            jnp.where(first, c, jnp.broadcast_to(E_max, dE.shape)))
+    a, lo, hi = jax.lax.associative_scan(_clamp_compose, maps)
+    after = jnp.clip(E0 + a, lo, hi)  # (T,) energy after each step
+    E = jnp.concatenate([E0[None], after[:-1]])
+    E = jnp.where(first, starts[pid], E)
+    last = jnp.full((K,), -1, jnp.int32).at[pid].max(jnp.arange(T, dtype=jnp.int32))
+    E_end = jnp.where(last >= 0, after[jnp.maximum(last, 0)], ends)
+    return E, E_end, ends
 
 
 def single_piece(T: int, dtype):
@@ -218,19 +258,37 @@ def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int
         return jnp.where(adj, jnp.where(th > 0, P_b + th * (hi - P_b), P_b + th * (P_b - lo)),
                          P_b)
 
-    def err(theta):  # decreases with theta (more discharge)
-        dE = jnp.where(pred.mask, -pt.battery_internal(vp, P_of(theta)) * dt, 0.0) - sync
-        return jax.ops.segment_sum(dE, pid, K) - target
+    def steps_dE(theta):
+        return jnp.where(pred.mask, -pt.battery_internal(vp, P_of(theta)) * dt, 0.0) - sync
 
-    def bis(_, c):
-        a, b = c
-        m = 0.5 * (a + b)
-        pos = err(m) > 0
-        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+    def err(theta):  # decreases with theta (more discharge)
+        return jax.ops.segment_sum(steps_dE(theta), pid, K) - target
+
+    def err_held(theta):  # the same within the battery's limits (`battery_path`)
+        _, E_end, goal = battery_path(vp, steps_dE(theta), pid, target)
+        return E_end - goal
+
+    def bisect(f, a, b, strict):
+        def bis(_, c):
+            a, b = c
+            m = 0.5 * (a + b)
+            e = f(m)
+            pos = jnp.where(strict, e > 0, e >= 0)
+            return jnp.where(pos, m, a), jnp.where(pos, b, m)
+
+        return jax.lax.fori_loop(0, n_bisect, bis, (a, b))
 
     one = jnp.ones((K,), P_b.dtype)
-    a, b = jax.lax.fori_loop(0, n_bisect, bis, (-one, one))
-    return P_of(0.5 * (a + b))
+    theta = 0.5 * sum(bisect(err, -one, one, True))
+    # where the plan leaves the battery's limits within a piece, the plant holds the energy
+    # there and the piece misses its end: move theta on, as little as meets it within the
+    # limits; where no theta meets it (the limit reached late in the piece decides its end),
+    # theta stays (pushing to the range's end would only burn fuel on the way)
+    e = err_held(theta)
+    up = e > 0  # too much charge kept: discharge more (theta up), else less
+    reach = jnp.where(up, err_held(one) <= 0, err_held(-one) >= 0)
+    a, b = bisect(err_held, jnp.where(up, theta, -one), jnp.where(up, one, theta), up)
+    return P_of(jnp.where((e == 0) | ~reach, theta, jnp.where(up, b, a)))
 
 
 def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) -> Plan:
@@ -240,7 +298,8 @@ def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) ->
     pid, target = pieces if pieces is not None else single_piece(lam.shape[0], lam.dtype)
     P_b = trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt)
     return Plan(mode=mode, gear=gear, lam=lam, P_b=P_b,
-                E_ref=plan_energy(vp, steps_energy(vp, pred, mode, gear, P_b, dt)),
+                E_ref=battery_path(vp, steps_energy(vp, pred, mode, gear, P_b, dt), pid,
+                                   target)[0],
                 k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype))
 
 
@@ -363,7 +422,13 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
 
     t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
     cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
-    errs = jax.lax.map(err_of, cands)  # (4, K), one DP at a time (memory)
+    def held_err(lam_t):  # (K,) the same within the battery's limits, as the plant holds them
+        r = _level1(vp, pred, lam_t, dt, params, fast)
+        _, E_end, goal = battery_path(vp, steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt),
+                                      pid, target)
+        return E_end - goal
+
+    errs = jax.lax.map(held_err, cands)  # (4, K), one DP at a time (memory)
     best = jnp.argmin(jnp.abs(errs), axis=0)  # (K,) candidate per piece
     lam_t = cands[best[pid], k]
     return _level1(vp, pred, lam_t, dt, params, fast), lam_t
@@ -663,10 +728,12 @@ BIG = 1e15  # "infeasible" in the DP bound (finite, so that interpolation stays 
 
 
 class BoundExtra(NamedTuple):
-    """dp-bound's own figures: the DP's predicted fuel (J), its E_b(tf) (J) and the rollout."""
+    """dp-bound's own figures: the DP's predicted fuel (J), its E_b(tf) (J), the target it had,
+    and the rollout."""
 
     fuel_dp_J: Any
     E_end_dp_J: Any
+    E_goal_J: Any  # the DP's target E_b(tf): E_b(t0), moved by what the first plant run missed
     mode: Any  # (T,)
     gear: Any  # (T,)
     lam: Any  # (T,) the costate whose Level 1 split was chosen at each step
@@ -724,7 +791,10 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         tot = jnp.where(inside, k_fuel[None] + v, BIG)
         return jnp.min(tot, axis=1), jnp.argmin(tot, axis=1)
 
-    V_T = jnp.broadcast_to(opts.dp_penalty * jnp.abs(E_grid - E0)[:, None], (n_E, S))
+    m_init, g_init = _init_state(pred)
+    s_init = jnp.where(m_init >= 0, m_init * (S // ps.N_MODES) + g_init, -1)
+    n_g = S // ps.N_MODES
+    T = pred.v.shape[0]
 
     def back(V1, inp):
         k_fuel, k_dE, C, m = inp
@@ -733,12 +803,6 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         V = jnp.minimum(best.T, BIG)
         V = jnp.where(m, V, V1)
         return V, V1
-
-    V_0, V_next = jax.lax.scan(back, V_T, (fuel, dEb, Cs, pred.mask), reverse=True)
-    # V_next[k] is the value after step k (before step k+1)
-
-    m_init, g_init = _init_state(pred)
-    s_init = jnp.where(m_init >= 0, m_init * (S // ps.N_MODES) + g_init, -1)
 
     def fwd(carry, inp):
         E, s = carry
@@ -754,26 +818,41 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         E1 = jnp.where(m, E1, E)
         return (E1, s1), (s1, lams[j1], jnp.where(m, cost, 0.0), E1 - E, k_Pb[j1, s1])
 
-    (E_end, _), (path, lam_path, costs, _, Pb_path) = jax.lax.scan(
-        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask, Pb))
-    n_g = S // ps.N_MODES
-    mode, gear = path // n_g, path % n_g
-    # the DP's battery path does not see the synchronisation energy its switches draw: the plan
-    # makes it up where the combined mode allows (`make_plan`)
-    plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts)
-    res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
-    # a second run whose battery power makes up for the drift the plant showed on the first
-    T = pred.v.shape[0]
-    pieces = compensate(single_piece(T, dtype), pred, jnp.array([0, T]),
-                        plant_drift(pred, plan, res))
-    plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts, pieces)
-    res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
-    # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
-    s0 = path[0]
-    i0, f, _ = _interp_grid(V_0, E0, dE, n_E)
-    lam_dp = (V_0[i0 + 1, s0] - V_0[i0, s0]) / dE
-    extra = BoundExtra(fuel_dp_J=jnp.sum(costs), E_end_dp_J=E_end, mode=mode, gear=gear,
-                       lam=lam_path)
+    def attempt(carry, _):
+        """The DP to E_b(tf) = goal, its decisions as a plan (battery power trimmed to the
+        goal, counting the synchronisation energy the DP does not see) and the plant run."""
+        goal, goal_prev, miss_prev = carry
+        V_T = jnp.broadcast_to(opts.dp_penalty * jnp.abs(E_grid - goal)[:, None], (n_E, S))
+        V_0, V_next = jax.lax.scan(back, V_T, (fuel, dEb, Cs, pred.mask), reverse=True)
+        # V_next[k] is the value after step k (before step k+1)
+        (E_end, _), (path, lam_path, costs, _, Pb_path) = jax.lax.scan(
+            fwd, (jnp.asarray(E0, dtype), s_init), (V_next, fuel, dEb, Cs, pred.mask, Pb))
+        mode, gear = path // n_g, path % n_g
+        pieces = (jnp.zeros(T, jnp.int32), jnp.reshape(goal - E0, (1,)).astype(dtype))
+        plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts, pieces)
+        res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
+        # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
+        i0, _, _ = _interp_grid(V_0, E0, dE, n_E)
+        lam_dp = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE
+        extra = BoundExtra(fuel_dp_J=jnp.sum(costs), E_end_dp_J=E_end, E_goal_J=goal,
+                           mode=mode, gear=gear, lam=lam_path)
+        # the plant leaves the plan's battery path (launches, stops, protection switches the
+        # plan does not see): aim the next attempt's end off by what this one missed, by the
+        # secant through the last two attempts where it rises (else one to one)
+        miss = res.final.E_b - res.E_b0
+        slope = (miss - miss_prev) / (goal - goal_prev)
+        ok = jnp.isfinite(slope) & (slope > 0.2) & (slope < 5.0)
+        step = jnp.where(ok, miss / jnp.where(ok, slope, 1.0), miss)
+        nxt = jnp.clip(goal - step, 0.0, E_max)
+        return (nxt, goal, miss), (res, lam_dp, extra, jnp.abs(miss))
+
+    # attempts aimed so that the plant ends where it started (the first charge sustaining);
+    # the bound reports the one whose plant run ends closest to it
+    inf = jnp.asarray(jnp.inf, dtype)
+    _, (ress, lam_dps, extras, misses) = jax.lax.scan(
+        attempt, (jnp.asarray(E0, dtype), inf, inf), None, length=3)
+    pick = lambda tree: jax.tree_util.tree_map(lambda x: x[jnp.argmin(misses)], tree)  # noqa: E731
+    res, lam_dp, extra = pick(ress), pick(lam_dps), pick(extras)
     return Run(_metrics(res, pred, vp, lam_dp, OK), res, pred, extra)
 
 

@@ -1,11 +1,14 @@
 """Plans that the plant follows: the battery-power trim on M_c steps, Level 2's pieces as
-targets, and the plant-drift compensation (strategies.trim_battery_power, piece_targets,
-compensate), on the short track at 25 t against plain loops."""
+targets, the plan's battery energy within the limits, and the plant-drift compensation
+(strategies.trim_battery_power, piece_targets, battery_path, compensate), on the short track at
+25 t against plain loops."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as hst
 
 from jaxems import plant as pl
 from jaxems import powertrain as pt
@@ -14,6 +17,7 @@ from jaxems import switching as sw
 from jaxems.io import load_route
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
+from jaxems.reference import ref_battery_path
 
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
@@ -23,8 +27,10 @@ R1 = jax.jit(lambda v, p, lam: S._level1(v, p, lam, 1.0, sw.SwitchCostParams()))
 T = PRED.v.shape[0]
 MID = int(np.sum(np.asarray(PRED.mask))) // 2
 PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
-trim = jax.jit(lambda target: S.trim_battery_power(VP, PRED, R1.mode, R1.gear, R1.P_b, PID,
-                                                    target, 1.0))
+trim_vp = jax.jit(lambda vp, target: S.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
+                                                          PID, target, 1.0))
+trim = lambda target: trim_vp(VP, target)  # noqa: E731
+path = jax.jit(S.battery_path)
 
 
 def loop_range(k):
@@ -37,18 +43,20 @@ def loop_range(k):
     return min(lo, P), max(hi, P), bool(r.ok)
 
 
-def piece_energy(P_b):
+def step_energy(P_b):
     sync = np.asarray(pl.path_sync_energy(VP, R1.mode, R1.gear, PRED.v))
-    dE = np.where(np.asarray(PRED.mask),
-                  -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b))) - sync, 0.0)
+    return np.where(np.asarray(PRED.mask),
+                    -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b))) - sync, 0.0)
+
+
+def piece_energy(P_b):
+    dE = step_energy(P_b)
     pid = np.asarray(PID)
     return np.array([dE[pid == p].sum() for p in range(2)])
 
 
-@pytest.mark.parametrize("target", [(0.0, 0.0), (-3e5, 2e5), (4e5, -6e5), (-5e7, 5e7)])
-def test_trim_meets_each_piece_target_within_the_states_ranges(target):
-    target = np.asarray(target)
-    got = np.asarray(trim(jnp.asarray(target)))
+def trim_ranges():
+    """(adj, lo, hi): the M_c steps the trim may move and their battery-power ranges."""
     mode = np.asarray(R1.mode)
     adj = np.zeros(T, bool)
     lo = np.empty(T)
@@ -56,6 +64,14 @@ def test_trim_meets_each_piece_target_within_the_states_ranges(target):
     for k in range(T):
         lo[k], hi[k], ok = loop_range(k)
         adj[k] = ok and mode[k] == ps.MC and bool(PRED.mask[k])
+    return adj, lo, hi
+
+
+@pytest.mark.parametrize("target", [(0.0, 0.0), (-3e5, 2e5), (4e5, -6e5), (-5e7, 5e7)])
+def test_trim_meets_each_piece_target_within_the_states_ranges(target):
+    target = np.asarray(target)
+    got = np.asarray(trim(jnp.asarray(target)))
+    adj, lo, hi = trim_ranges()
     assert adj[:MID].any() and adj[MID:].any()  # both pieces have M_c steps to trim
     # elsewhere the plan's battery power is untouched; on M_c steps it stays in range
     np.testing.assert_array_equal(got[~adj], np.asarray(R1.P_b)[~adj])
@@ -93,3 +109,60 @@ def test_piece_targets_map_steps_to_level2_pieces():
     pid, target = S.piece_targets(C2, 12)
     np.testing.assert_array_equal(np.asarray(pid), [0] * 5 + [1] * 4 + [2] * 3)
     np.testing.assert_allclose(np.asarray(target), [-2e6, 4e6, -2e6])
+
+
+@settings(max_examples=30)
+@given(hst.lists(hst.floats(-1.5e6, 1.5e6), min_size=24, max_size=24),
+       hst.lists(hst.integers(0, 3), min_size=24, max_size=24),
+       hst.lists(hst.floats(-5e6, 5e6), min_size=4, max_size=4),
+       hst.floats(0.0, 1.0))
+def test_battery_path_equals_a_loop_and_stays_within_the_limits(dE, pids, target, soc0):
+    vp = VP.replace(soc0=soc0)
+    pid = np.sort(np.asarray(pids))
+    E, E_end, goal = (np.asarray(x) for x in path(vp, jnp.asarray(dE), jnp.asarray(pid),
+                                                   jnp.asarray(target)))
+    ref = ref_battery_path(float(vp.soc0 * vp.E_b_max), float(vp.E_b_max), dE, pid, target)
+    for got, want in zip((E, E_end, goal), ref, strict=True):
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-3)
+    assert np.all(E >= 0.0) and np.all(E <= float(vp.E_b_max))
+
+
+def test_battery_path_is_the_plain_sum_where_no_limit_is_reached():
+    dE = step_energy(np.asarray(R1.P_b))
+    pid = np.asarray(PID)
+    target = piece_energy(np.asarray(R1.P_b))
+    E, E_end, goal = (np.asarray(x) for x in path(VP, jnp.asarray(dE), PID, jnp.asarray(target)))
+    plain = float(VP.soc0 * VP.E_b_max) + np.concatenate([[0.0], np.cumsum(dE)[:-1]])
+    assert 0 < plain.min() and plain.max() < float(VP.E_b_max)  # the case: no limit reached
+    np.testing.assert_allclose(E, plain, rtol=1e-12)
+    np.testing.assert_allclose(E_end, goal, rtol=1e-12)
+    assert set(np.unique(pid)) == {0, 1}
+
+
+def test_trim_meets_the_pieces_ends_within_a_small_battery():
+    """With a battery that the plan leaves within its first piece, the trim meets each piece's
+    end as the plant would hold the battery (a loop over the steps), where the range allows."""
+    E_max = 0.35e6
+    vp = VP.replace(E_b_max=E_max)
+    E0 = float(vp.soc0) * E_max
+    target = np.asarray([-0.1e6, 0.05e6])
+    dE0 = step_energy(np.asarray(R1.P_b))
+    plain = E0 + np.cumsum(dE0)
+    assert plain.min() < 0 or plain.max() > E_max  # the case: the plan leaves the limits
+    got = np.asarray(trim_vp(vp, jnp.asarray(target)))
+    adj, lo, hi = trim_ranges()
+    np.testing.assert_array_equal(got[~adj], np.asarray(R1.P_b)[~adj])
+    assert np.all(got[adj] >= lo[adj] - 1e-6) and np.all(got[adj] <= hi[adj] + 1e-6)
+    pid = np.asarray(PID)
+
+    def held_end(P_b):
+        return ref_battery_path(E0, E_max, step_energy(P_b), pid, target)[1:]
+
+    (e, goal), (e_lo, _), (e_hi, _) = (held_end(P) for P in (got, np.where(adj, lo, got),
+                                                              np.where(adj, hi, got)))
+    assert e_hi[0] <= goal[0] <= e_lo[0]  # the case: the first piece's end is reachable
+    for p in range(2):
+        if e_hi[p] <= goal[p] <= e_lo[p]:
+            assert abs(e[p] - goal[p]) < 1.0, (p, e[p], goal[p])
+    # untrimmed, the plan misses it: the plant would hold the battery at a limit on the way
+    assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4

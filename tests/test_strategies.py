@@ -123,7 +123,7 @@ def test_dp_bound_predicts_what_the_plant_burns(runs):
     r = runs["dp-bound"]
     ex = r.extra
     # the DP's own fuel and end energy against the plant run of its decisions
-    assert abs(float(ex.E_end_dp_J) - float(VP.soc0 * VP.E_b_max)) < 0.01 * float(VP.E_b_max)
+    assert abs(float(ex.E_end_dp_J) - float(ex.E_goal_J)) < 0.01 * float(VP.E_b_max)
     assert abs(r["fuel_J"] - float(ex.fuel_dp_J)) / float(ex.fuel_dp_J) < 0.05
 
 
