@@ -186,13 +186,6 @@ def steps_energy(vp, pred, mode, gear, P_b, dt):
     return jnp.where(pred.mask, dE, 0.0)
 
 
-def _clamp_compose(f, g):
-    """Maps x -> min(max(x + a, l), h) as (a, l, h), l <= h: g after f (associative)."""
-    a1, l1, h1 = f
-    a2, l2_, h2 = g
-    return a1 + a2, jnp.clip(l1 + a2, l2_, h2), jnp.clip(h1 + a2, l2_, h2)
-
-
 def battery_path(vp, dE, pid, target):
     """The battery energy (J) a plan expects, piece by piece, within the battery's limits.
 
@@ -207,9 +200,7 @@ def battery_path(vp, dE, pid, target):
     feedback chases it for the rest of the route.
 
     Returns (E: (T,) energy at the start of each step, E_end: (K,) at each piece's end, goal:
-    (K,) where the targets put each piece's end, within the limits). An associative scan of
-    the clamped steps (each step x -> min(max(x + dE, 0), E_b_max), a piece's first step from
-    its start value)."""
+    (K,) where the targets put each piece's end, within the limits)."""
     dtype = dE.dtype
     E_max = jnp.asarray(vp.E_b_max, dtype)
     E0 = jnp.asarray(vp.soc0 * vp.E_b_max, dtype)
@@ -218,14 +209,14 @@ def battery_path(vp, dE, pid, target):
     ends = jnp.clip(E0 + jnp.cumsum(target), 0.0, E_max)  # (K,)
     starts = jnp.clip(E0 + jnp.cumsum(target) - target, 0.0, E_max)
     first = jnp.concatenate([jnp.ones(1, bool), pid[1:] != pid[:-1]])
-    c = jnp.clip(starts[pid] + dE, 0.0, E_max)  # a piece's first step: a constant map
-    zero = jnp.zeros_like(dE)
-    maps = (jnp.where(first, zero, dE), jnp.where(first, c, zero),
-            jnp.where(first, c, jnp.broadcast_to(E_max, dE.shape)))
-    a, lo, hi = jax.lax.associative_scan(_clamp_compose, maps)
-    after = jnp.clip(E0 + a, lo, hi)  # (T,) energy after each step
-    E = jnp.concatenate([E0[None], after[:-1]])
-    E = jnp.where(first, starts[pid], E)
+
+    def step(E, x):
+        d, f, a = x
+        E = jnp.where(f, a, E)
+        E1 = jnp.clip(E + d, 0.0, E_max)
+        return E1, (E, E1)
+
+    _, (E, after) = jax.lax.scan(step, E0, (dE, first, starts[pid]))
     last = jnp.full((K,), -1, jnp.int32).at[pid].max(jnp.arange(T, dtype=jnp.int32))
     E_end = jnp.where(last >= 0, after[jnp.maximum(last, 0)], ends)
     return E, E_end, ends
