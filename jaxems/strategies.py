@@ -668,9 +668,11 @@ def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24):
         covers_end = j + h2 > p.end
         args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
 
-        def to_end():  # the window reaches the route's end: charge sustaining there
-            return l2.costate_kernel(vp, *args, E_b0=obs.E_b, E_b_end=p.E_target,
-                                     n_iter=l2_iter, max_pieces=1).lam0
+        def to_end():  # the window reaches the route's end: charge sustaining there; at a
+            # guard, the side of Level 2's I2b sequence now (as `guard_lambda` for the iteration)
+            c2 = l2.costate_kernel(vp, *args, E_b0=obs.E_b, E_b_end=p.E_target,
+                                   n_iter=l2_iter, max_pieces=1)
+            return guard_lambda(c2, 1e-3 * vp.E_b_max)[0]
 
         def limited():  # I3: the largest distance to the battery limits over the window
             return l2.horizon_kernel(vp, *args, obs.E_b, n_iter=l2_iter, max_pieces=1).lam

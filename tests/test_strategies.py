@@ -71,20 +71,23 @@ def test_multilevel_close_to_the_dp_bound(runs):
     f_ml, f_dp = corrected(runs["multilevel"]), corrected(runs["dp-bound"])
     # target 1 %: not reached. Both end charge sustaining here, so this is fuel against fuel;
     # the bound runs M_c with a continuous battery power where Level 1, at Level 2's guard,
-    # takes either side (M_m or the engine) in discrete stretches: about 7 % more fuel
-    assert 0.0 < (f_ml - f_dp) / f_dp < 0.09
+    # takes either side (M_m or the engine) in discrete stretches: about 3 % more fuel
+    assert 0.0 < (f_ml - f_dp) / f_dp < 0.05
+    # the MPC, at the guard on the side of Level 2's I2b sequence, comes closer (0.6 %)
+    assert 0.0 < (corrected(runs["multilevel-mpc"]) - f_dp) / f_dp < 0.02
 
 
 def test_iteration_converges_and_mpc_is_close(runs):
     it = runs["multilevel"].extra
     fuel = np.asarray(it.fuel_J) + np.asarray(it.lambda_b) * np.asarray(it.delta_Eb_J)
     assert fuel.shape == (2,)
-    assert abs(fuel[1] - fuel[0]) / fuel[0] < 0.05  # paper 0.1 %
+    # paper 0.1 %, target 0.5 %: 0.15 % here (raw fuel 3 %: iteration 0 ends 3 % of the
+    # battery low, iteration 1 makes up for the plant's drift)
+    assert abs(fuel[1] - fuel[0]) / fuel[0] < 0.005
     f_ml, f_mpc = corrected(runs["multilevel"]), corrected(runs["multilevel-mpc"])
-    # paper 0.2-0.4 %; here the MPC's Level 2 window covers the whole 1 km track and, once the
-    # last descent makes the end target unreachable, runs at the bracket's cheapest costate:
-    # 11 % above the iteration at 25 t (2 % at 20 t)
-    assert abs(f_mpc - f_ml) / f_ml < 0.15
+    # paper 0.2-0.4 %, target 1 %: the MPC is 2.5 % below the iteration here (it re-plans from
+    # the measured battery; the iteration is 3 % above the bound, see above)
+    assert abs(f_mpc - f_ml) / f_ml < 0.04
 
 
 def test_charge_sustenance(runs):
@@ -94,8 +97,9 @@ def test_charge_sustenance(runs):
     # plant's drift to its next plan, the bound re-runs once: within 1 % of the battery here
     for name in ("multilevel", "dp-bound"):
         assert abs(runs[name]["delta_Eb_J"]) < 0.01 * size, name
-    # the MPC's Level 1 (5 s) does not follow Level 2 at the guards and the last descent fills
-    # the battery (15 % here, target 1 %); the A-ECMS has no preview of the route's end
+    # the MPC loses speed on the last climb, and Level 2 then finds the end target out of
+    # reach: the last descent fills the battery (16 % here, target 1 %); the A-ECMS has no
+    # preview of the route's end
     for name in ("multilevel-mpc", "baseline"):
         assert abs(runs[name]["delta_Eb_J"]) < 0.2 * size, name
 
