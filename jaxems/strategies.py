@@ -368,7 +368,9 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     Where a piece's energy jumps with the shift (a guard, as in I2 of Level 2) the plans either
     side are joined in time within the piece: the shift above the jump up to a step t_s and below
     it after, t_s found by bisection (I2b's single switch). Each piece then takes the candidate
-    closest to its target; where Level 1's decisions move the battery in large steps (a whole
+    whose end comes closest to its target with the battery held within its limits
+    (`battery_path`: a plan that drains the battery below empty on the way ends higher in the
+    plant than its sum says); where Level 1's decisions move the battery in large steps (a whole
     climb on the motor or not) a residual remains. The plans' balances count the
     synchronisation energy their switches draw from the battery (`steps_energy`).
     Without Level 2 pieces (pid all 0, target (1,) = [0]) this is charge sustaining.
@@ -379,10 +381,16 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     k = jnp.arange(T)
     dtype = pred.v.dtype
 
-    def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
+    def plan_dE(lam_t):  # (T,) the energy change of each step of Level 1's plan
         r = _level1(vp, pred, lam_t, dt, params, fast)
-        dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
-        return jax.ops.segment_sum(dE, pid, K) - target
+        return steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
+
+    def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
+        return jax.ops.segment_sum(plan_dE(lam_t), pid, K) - target
+
+    def held_err(lam_t):  # (K,) the same within the battery's limits, as the plant holds them
+        _, E_end, goal = battery_path(vp, plan_dE(lam_t), pid, target)
+        return E_end - goal
 
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
@@ -413,12 +421,6 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
 
     t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
     cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
-    def held_err(lam_t):  # (K,) the same within the battery's limits, as the plant holds them
-        r = _level1(vp, pred, lam_t, dt, params, fast)
-        _, E_end, goal = battery_path(vp, steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt),
-                                      pid, target)
-        return E_end - goal
-
     errs = jax.lax.map(held_err, cands)  # (4, K), one DP at a time (memory)
     best = jnp.argmin(jnp.abs(errs), axis=0)  # (K,) candidate per piece
     lam_t = cands[best[pid], k]
@@ -726,7 +728,7 @@ class BoundExtra(NamedTuple):
 
     fuel_dp_J: Any
     E_end_dp_J: Any
-    E_goal_J: Any  # the DP's target E_b(tf): E_b(t0), moved by what the first plant run missed
+    E_goal_J: Any  # the DP's target E_b(tf): E_b(t0), moved by what earlier plant runs missed
     mode: Any  # (T,)
     gear: Any  # (T,)
     lam: Any  # (T,) the costate whose Level 1 split was chosen at each step
