@@ -17,9 +17,6 @@ from jaxems.levels.velocity import predict_velocity
 from jaxems.params import load_vehicle, with_overrides
 from jaxems.strategies import simulate
 
-# one worker computes this module's shared fixture (pytest-xdist --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("test_experiments")
-
 ROOT = Path(__file__).resolve().parent.parent
 LHV_J_PER_KG, DENSITY_KG_PER_L = 42.8e6, 0.832  # data/vehicles/reference_truck.toml [fuel]
 

@@ -14,9 +14,6 @@ from jaxems import strategies as S
 from jaxems.io import load_route
 from jaxems.params import load_vehicle, stack_vehicles
 
-# one worker computes this module's shared fixture (pytest-xdist --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("test_strategies")
-
 VP = load_vehicle().replace(mass=25000.0)
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 

@@ -22,9 +22,6 @@ from jaxems import strategies as st
 from jaxems import sweep as sw
 from jaxems.levels.velocity import velocity_profile
 
-# one worker computes this module's shared fixture (pytest-xdist --dist loadgroup)
-pytestmark = pytest.mark.xdist_group("test_sweep")
-
 STEEP = """distance_m,speed_limit_km_h,gradient_pct,stop_s
 0,25,0,0
 100,25,25,0
