@@ -206,8 +206,9 @@ def battery_path(vp, dE, pid, target):
     E0 = jnp.asarray(vp.soc0 * vp.E_b_max, dtype)
     K = target.shape[0]
     T = dE.shape[0]
-    ends = jnp.clip(E0 + jnp.cumsum(target), 0.0, E_max)  # (K,)
-    starts = jnp.clip(E0 + jnp.cumsum(target) - target, 0.0, E_max)
+    cum = E0 + jnp.cumsum(target)  # (K,) where the targets put each piece's end
+    ends = jnp.clip(cum, 0.0, E_max)
+    starts = jnp.clip(cum - target, 0.0, E_max)
     first = jnp.concatenate([jnp.ones(1, bool), pid[1:] != pid[:-1]])
 
     def step(E, x):
@@ -226,6 +227,20 @@ def single_piece(T: int, dtype):
     """The whole route as one piece that ends where it starts (charge sustaining):
     (pid (T,), target (1,)) as `piece_targets` gives them."""
     return jnp.zeros(T, jnp.int32), jnp.zeros(1, dtype)
+
+
+def bisect_pieces(err, a, b, n: int, strict=True):
+    """Bisection on every piece at once: err (K,) -> (K,) decreasing in x, brackets a, b: (K,).
+    Keeps err(a) > 0 (strict; else >= 0) and err(b) <= 0 (< 0); returns the final (a, b)."""
+
+    def bis(_, c):
+        a, b = c
+        m = 0.5 * (a + b)
+        e = err(m)
+        pos = jnp.where(strict, e > 0, e >= 0)
+        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+
+    return jax.lax.fori_loop(0, n, bis, (a, b))
 
 
 def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int = 40):
@@ -259,18 +274,8 @@ def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int
         _, E_end, goal = battery_path(vp, steps_dE(theta), pid, target)
         return E_end - goal
 
-    def bisect(f, a, b, strict):
-        def bis(_, c):
-            a, b = c
-            m = 0.5 * (a + b)
-            e = f(m)
-            pos = jnp.where(strict, e > 0, e >= 0)
-            return jnp.where(pos, m, a), jnp.where(pos, b, m)
-
-        return jax.lax.fori_loop(0, n_bisect, bis, (a, b))
-
     one = jnp.ones((K,), P_b.dtype)
-    theta = 0.5 * sum(bisect(err, -one, one, True))
+    theta = 0.5 * sum(bisect_pieces(err, -one, one, n_bisect))
     # where the plan leaves the battery's limits within a piece, the plant holds the energy
     # there and the piece misses its end: move theta on, as little as meets it within the
     # limits; where no theta meets it (the limit reached late in the piece decides its end),
@@ -278,7 +283,8 @@ def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int
     e = err_held(theta)
     up = e > 0  # too much charge kept: discharge more (theta up), else less
     reach = jnp.where(up, err_held(one) <= 0, err_held(-one) >= 0)
-    a, b = bisect(err_held, jnp.where(up, theta, -one), jnp.where(up, one, theta), up)
+    a, b = bisect_pieces(err_held, jnp.where(up, theta, -one), jnp.where(up, one, theta),
+                         n_bisect, up)
     return P_of(jnp.where((e == 0) | ~reach, theta, jnp.where(up, b, a)))
 
 
@@ -395,14 +401,9 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
 
-    def bis(_, c):  # a piece's dE decreases as its shift grows (cheaper battery: discharge)
-        a, b = c
-        m = 0.5 * (a + b)
-        pos = err_of(shifted(m)) > 0
-        return jnp.where(pos, m, a), jnp.where(pos, b, m)
-
+    # a piece's dE decreases as its shift grows (cheaper battery: discharge)
     half = jnp.full((K,), 1.5, dtype)
-    a, b = jax.lax.fori_loop(0, n_bisect, bis, (-half, half))
+    a, b = bisect_pieces(lambda d: err_of(shifted(d)), -half, half, n_bisect)
     # either side of the jump, shifted apart so that the DP, which weighs switching costs over
     # the whole horizon, follows each side in its own part of the piece
     ja, jb = shifted(a - gap), shifted(b + gap)
