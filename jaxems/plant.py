@@ -211,11 +211,24 @@ def path_sync_energy(vp: VehicleParams, mode, gear, v):
     at step k the switch from step k-1's (mode, gear) to step k's at speed v_k, drawn through
     the motor (1 / eta_m); 0 at step 0 (a plan starts in its own first state) and for a truck
     without a motor (it pays in fuel). mode, gear, v: (T,)."""
+    pm, pg, mode_sw, gear_sw = _path_switches(mode, gear)
+    dU = jax.vmap(lambda a, b, c, d, x: sync_energy(vp, a, b, c, d, x))(pm, pg, mode, gear, v)
+    return jnp.where((mode_sw | gear_sw) & (vp.has_motor > 0.5), dU / vp.eta_m, 0.0)
+
+
+def _path_switches(mode, gear):
+    """(previous mode, previous gear, mode switched, gear switched) at each step of a path,
+    as the plant counts them (a gear change in the open mode is none). mode, gear: (T,)."""
     pm = jnp.concatenate([mode[:1], mode[:-1]])
     pg = jnp.concatenate([gear[:1], gear[:-1]])
-    switched = (mode != pm) | ((gear != pg) & (mode != MO))
-    dU = jax.vmap(lambda a, b, c, d, x: sync_energy(vp, a, b, c, d, x))(pm, pg, mode, gear, v)
-    return jnp.where(switched & (vp.has_motor > 0.5), dU / vp.eta_m, 0.0)
+    return pm, pg, mode != pm, (gear != pg) & (mode != MO)
+
+
+def path_open_time(vp: VehicleParams, mode, gear):
+    """(T,) seconds of open driveline (eq. 12) at each step of a plan's path (mode, gear: (T,)):
+    dt_M at a mode switch, dt_G at a gear switch, the larger at both, as the plant opens it."""
+    _, _, mode_sw, gear_sw = _path_switches(mode, gear)
+    return jnp.maximum(jnp.where(mode_sw, vp.dt_M, 0.0), jnp.where(gear_sw, vp.dt_G, 0.0))
 
 
 idle_fuel_power = ps.idle_fuel_power

@@ -30,7 +30,8 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
   `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
 - Plans on the plant: `ref_battery_path` (a plan's battery energy piece by piece, each piece
-  from Level 2's start value, held within the battery's limits step by step).
+  from Level 2's start value, held within the battery's limits step by step) and
+  `ref_plan_energy` (each step's battery energy change: synchronisation, open driveline).
 - `reference_plan`: iteration 0 of the multilevel strategy's planning pipeline, the same stages
   as `kernel_plan` (which runs them through the JAX kernels): Level 3 prediction -> Level 2
   costate by bisection (charge sustaining, no battery limits, gears from the constant engine
@@ -1048,4 +1049,35 @@ def ref_battery_path(E0, E_max, dE, pid, target):
     return E, E_end, goal
 
 
-__all__ += ["ref_battery_path"]
+def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
+    """Each step's battery energy change (J) of a plan, as the plant moves it: loop over steps.
+
+    A step whose (mode, gear) differs from the last one's (a gear change in the open mode is
+    none) draws the synchronisation energy through the motor, and for its open driveline time
+    (dt_M at a mode switch, dt_G at a gear switch, the larger at both; at most the step) moves
+    no battery power, except driving in M_m (the motor makes the lost speed up after the
+    switch). Steps outside `mask` change nothing."""
+    from .plant import sync_energy
+
+    P_d, v, P_b = (np.asarray(x, float) for x in (P_d, v, P_b))
+    mode, gear, mask = np.asarray(mode), np.asarray(gear), np.asarray(mask)
+    P_bi = P_b + float(vp.beta) * P_b * P_b  # eq. 7
+    out = np.zeros(P_d.shape[0])
+    for k in range(P_d.shape[0]):
+        if not mask[k]:
+            continue
+        open_s, sync = 0.0, 0.0
+        if k > 0:
+            m0, g0, m1, g1 = int(mode[k - 1]), int(gear[k - 1]), int(mode[k]), int(gear[k])
+            msw = m1 != m0
+            gsw = g1 != g0 and m1 != MO
+            open_s = max(float(vp.dt_M) if msw else 0.0, float(vp.dt_G) if gsw else 0.0)
+            if (msw or gsw) and float(vp.has_motor) > 0.5:
+                sync = float(sync_energy(vp, m0, g0, m1, g1, v[k])) / float(vp.eta_m)
+        driving_mm = mode[k] == 2 and P_d[k] > 0  # M_m makes the lost speed up
+        keep = 1.0 if driving_mm else 1.0 - min(open_s / dt, 1.0)
+        out[k] = -P_bi[k] * dt * keep - sync
+    return out
+
+
+__all__ += ["ref_battery_path", "ref_plan_energy"]

@@ -17,7 +17,7 @@ from jaxems import switching as sw
 from jaxems.io import load_route
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
-from jaxems.reference import ref_battery_path
+from jaxems.reference import ref_battery_path, ref_plan_energy
 
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
@@ -44,9 +44,40 @@ def loop_range(k):
 
 
 def step_energy(P_b):
-    sync = np.asarray(pl.path_sync_energy(VP, R1.mode, R1.gear, PRED.v))
-    return np.where(np.asarray(PRED.mask),
-                    -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b))) - sync, 0.0)
+    return ref_plan_energy(VP, PRED.P_d, PRED.v, R1.mode, R1.gear, P_b, 1.0, PRED.mask)
+
+
+def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
+    """`steps_energy` against the loop on random paths over the short track's steps: each
+    switch draws its synchronisation energy, and its open second moves no battery power except
+    driving in M_m; without switches it is the plain -P_bi dt."""
+    rng = np.random.default_rng(5)
+    mask = np.asarray(PRED.mask)
+    for stay in (0.0, 0.6, 0.9):
+        mode = np.zeros(T, np.int32)
+        gear = np.zeros(T, np.int32)
+        for k in range(1, T):  # runs of states: switches at random steps
+            new = rng.random() >= stay
+            mode[k] = rng.integers(0, 4) if new else mode[k - 1]
+            gear[k] = rng.integers(0, 12) if new else gear[k - 1]
+        P_b = rng.uniform(-150e3, 150e3, T)
+        got = np.asarray(S.steps_energy(VP, PRED, jnp.asarray(mode), jnp.asarray(gear),
+                                        jnp.asarray(P_b), 1.0))
+        want = ref_plan_energy(VP, PRED.P_d, PRED.v, mode, gear, P_b, 1.0, mask)
+        np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-6)
+    const = np.full(T, 5, np.int32)
+    got = np.asarray(S.steps_energy(VP, PRED, jnp.asarray(const * 0), jnp.asarray(const),
+                                    jnp.asarray(P_b), 1.0))
+    plain = -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b)))
+    np.testing.assert_allclose(got, np.where(mask, plain, 0.0), rtol=1e-12)
+    # a braking step that switches recuperates nothing
+    k = int(np.argmax(np.where(mask[1:], -np.asarray(PRED.P_d)[1:], -np.inf))) + 1
+    assert float(PRED.P_d[k]) < 0
+    g = np.full(T, 5, np.int32)
+    g[k:] = 4
+    e = np.asarray(S.steps_energy(VP, PRED, jnp.zeros(T, jnp.int32), jnp.asarray(g),
+                                  jnp.full(T, -100e3), 1.0))
+    assert e[k] <= 0.0 < e[k - 1]
 
 
 def piece_energy(P_b):
