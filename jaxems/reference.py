@@ -480,18 +480,20 @@ def ref_traction_table(vp: VehicleParams, v, grade, prm: SwitchCostParams):
     return out.reshape(3, -1)
 
 
-def ref_cost_matrix(vp: VehicleParams, v, grade, lam, prm: SwitchCostParams):
+def ref_cost_matrix(vp: VehicleParams, v, grade, lam, prm: SwitchCostParams, extra=None):
     """Switching cost eps_M + eps_G (J) between all states at one step: (S, S), [s, s'] for
     s -> s'. Per component c (engine, motor) the rotational energy U_c = 1/2 I_c x_c w^2 (x_c
     connected, w the gearbox input speed of the gear); the synchronisation energy is
     (1 - a) max(U_c' - U_c, 0) + a |U_c' - U_c| / 2 summed over c (a = `averaged`), priced at
-    -lambda_b (A17-A19), plus the traction cost of the switch's kind into s'; 0 on the diagonal.
+    -lambda_b (A17-A19), plus the traction cost of the switch's kind into s' (and `extra`
+    (3, S), Level 1's braking loss `ref_braking_loss`); 0 on the diagonal.
     """
     f = _veh(vp)
     n_g = f.gear_ratio.shape[0]
     S = N_MODES * n_g
     w = f.gear_ratio * f.r_d * float(v)
     trac = ref_traction_table(vp, v, grade, prm)
+    trac = trac if extra is None else trac + np.asarray(extra, float)
     a = float(prm.averaged)
     mode, gear = np.arange(S) // n_g, np.arange(S) % n_g
     E = np.zeros((S, S))
@@ -775,7 +777,8 @@ def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: 
        battery limits, gears from the constant engine speed w_pred.
     3. Level 1: `split_table` at Level 2's costate (H dt per state, 0 for every state of a step
        where none is feasible) and `viterbi_path` with `ref_cost_matrix` of each step (speed,
-       gradient, costate) as transition costs; from the open driveline in gear 1 when the
+       gradient, costate; the recuperation a switch loses braking, `ref_braking_loss`) as
+       transition costs; from the open driveline in gear 1 when the
        route starts at standstill, free otherwise; masked steps keep the state.
 
     n_grid, levels: the refined brute-force search of the Level 1 and Level 2 splits.
@@ -808,8 +811,10 @@ def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: 
         init = np.full(S, np.inf)
         init[MO * n_g] = 0.0
 
+    brake = ref_braking_loss(vp, tab.H, pred.P_d, dt)
+
     def costs(k):
-        return ref_cost_matrix(vp, pred.v[k], pred.grade[k], lam, params)
+        return ref_cost_matrix(vp, pred.v[k], pred.grade[k], lam, params, brake[k])
 
     vit = viterbi_path(H, costs, init, pred.mask)
     stage_s["viterbi"] = time.perf_counter() - t3
@@ -1080,4 +1085,25 @@ def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
     return out
 
 
-__all__ += ["ref_battery_path", "ref_plan_energy"]
+def ref_braking_loss(vp: VehicleParams, H, P_d, dt):
+    """(T, 3, S) J: per step, the recuperation a switch into each state loses while braking
+    (P_d < 0): min(tau, dt) (H_open - H)^+ with tau = dt_M, dt_G, max(dt_M, dt_G) for a mode,
+    gear or both switch, H_open the open mode's least Hamiltonian; zero driving and where H is
+    infinite. Loop over steps, kinds and states. H: (T, 4, G) W; P_d: (T,) W."""
+    H, P_d = np.asarray(H, float), np.asarray(P_d, float)
+    T, _, G = H.shape
+    taus = (float(vp.dt_M), float(vp.dt_G), max(float(vp.dt_M), float(vp.dt_G)))
+    out = np.zeros((T, 3, N_MODES * G))
+    for k in range(T):
+        h_open = min(H[k, MO])
+        if P_d[k] >= 0 or not np.isfinite(h_open):
+            continue
+        for m in range(N_MODES):
+            for g in range(G):
+                if np.isfinite(H[k, m, g]):
+                    for i, tau in enumerate(taus):
+                        out[k, i, m * G + g] = min(tau, dt) * max(h_open - H[k, m, g], 0.0)
+    return out
+
+
+__all__ += ["ref_battery_path", "ref_braking_loss", "ref_plan_energy"]

@@ -535,6 +535,7 @@ class EcmsParams(NamedTuple):
     soc_ref: Any
     dwell: Any  # steps
     switch: sw.SwitchCostParams
+    dt: Any  # s, the plant's step
 
 
 def ecms_lambda(p: EcmsParams, vp, E_b):
@@ -552,7 +553,8 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
     n_g = vp.gear_ratio.shape[-1]
     s_cur = obs.mode * n_g + obs.gear
-    C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
+    brake = l1.braking_loss(vp, tab.H, obs.P_req, p.dt)
+    C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch, brake)[s_cur]
     cost = jnp.where(tab.feasible, tab.H, jnp.inf).reshape(-1) + C
     i = jnp.argmin(cost)
     i = jnp.where(jnp.isfinite(cost[i]) & (since >= p.dwell), i, s_cur)
@@ -564,7 +566,7 @@ def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
                    soc_ref=jnp.asarray(opts.soc_ref), dwell=jnp.asarray(opts.dwell),
-                   switch=params)
+                   switch=params, dt=jnp.asarray(dt))
     track = pl.make_track(route, pred)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
@@ -799,8 +801,11 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     any_feas = jnp.any(feas, axis=(1, 2))
     fuel = jnp.where(any_feas[:, None, None], fuel, 0.0)  # a step beyond capability: free
     dEb = jnp.where(any_feas[:, None, None], dEb, 0.0)
-    Cs = jax.vmap(lambda v, g, lam: sw.switch_cost_matrix(vp, v, g, lam, params))(
-        pred.v, pred.grade, lam_sw)  # (T, S, S)
+    def costs(P_d, v, g, lam):  # the switching costs of Level 1 (with what braking loses)
+        H = ps.mode_gear_split(vp, P_d, v, lam).H
+        return sw.switch_cost_matrix(vp, v, g, lam, params, l1.braking_loss(vp, H, P_d, dt))
+
+    Cs = jax.vmap(costs)(pred.P_d, pred.v, pred.grade, lam_sw)  # (T, S, S)
 
     def q_of(V1, k_fuel, k_dE, E):
         """min over candidates of fuel + V1(E + dE): E (n,) -> (n, S) value, (n, S) arg."""

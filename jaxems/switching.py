@@ -219,17 +219,20 @@ def stranded_cost(vp: VehicleParams, v, F0, taus):
     return jnp.where((ce[None, :, None] > 0) & e_bad[:, None, :], STRANDED_J, 0.0)
 
 
-def switch_cost_matrix(vp: VehicleParams, v, grade, lam, params: SwitchCostParams):
+def switch_cost_matrix(vp: VehicleParams, v, grade, lam, params: SwitchCostParams,
+                       extra=None):
     """Dense switching cost eps_M + eps_G (J) between all states at one step: (S, S).
 
     [s, s'] = weight * (synchronisation(s -> s') + traction(kind, s')) for s != s', 0 on the
-    diagonal, where kind is mode-only / gear-only / both. The reference for the structured
-    relaxation of Level 1.
+    diagonal, where kind is mode-only / gear-only / both. extra: optional (3, S) J per kind and
+    state switched into, added to the traction cost (Level 1's `level1.braking_loss`). The
+    reference for the structured relaxation of Level 1.
     """
     n_g = vp.gear_ratio.shape[-1]
     S = N_MODES * n_g
     sync = sync_cost_matrix(vp, v, lam, params.averaged)
     trac = traction_cost_table(vp, v, grade, params)  # (3, S)
+    trac = trac if extra is None else trac + extra
     mode = jnp.arange(S) // n_g
     gear = jnp.arange(S) % n_g
     dm = mode[:, None] != mode[None]

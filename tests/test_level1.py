@@ -12,7 +12,7 @@ from jaxems import switching as sw
 from jaxems.levels import level1 as l1
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
-from jaxems.reference import numpy_viterbi
+from jaxems.reference import numpy_viterbi, ref_braking_loss
 
 VP = load_vehicle()
 PRM = sw.SwitchCostParams()
@@ -81,9 +81,14 @@ def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts
 
 
 # ----------------------------------------------------------------------- full horizon DP
-_cost_mats = jax.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None)))
+_cost_mats = jax.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None, 0)))
 _htab = jax.jit(ps.hamiltonian_table)
-_tcost = jax.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None)))
+_tcost = jax.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0)))
+
+
+def _brake(vp, P_d, v, lam):
+    """The NumPy loop's braking losses (`ref_braking_loss`) of the route's steps."""
+    return ref_braking_loss(vp, _htab(vp, P_d, v, np.broadcast_to(lam, v.shape)).H, P_d, DT)
 
 
 def _reference_cost(vp, P_d, v, grade, lam, init_state, prm):
@@ -91,17 +96,19 @@ def _reference_cost(vp, P_d, v, grade, lam, init_state, prm):
     H = np.asarray(tab.H).reshape(len(P_d), -1) * DT
     none = ~np.any(np.isfinite(H), axis=1)
     H[none] = 0.0
-    Cs = np.asarray(_cost_mats(vp, v, grade, np.broadcast_to(lam, v.shape), prm))
+    Cs = np.asarray(_cost_mats(vp, v, grade, np.broadcast_to(lam, v.shape), prm,
+                               _brake(vp, P_d, v, lam)))
     init = np.full(48, np.inf)
     init[init_state] = 0.0
     return numpy_viterbi(H, Cs, init)
 
 
-def _check_result(r, vp, v, grade, lam, prm, init_state, mask=None):
+def _check_result(r, vp, P_d, v, grade, lam, prm, init_state, mask=None):
     mask = np.ones(len(v), bool) if mask is None else mask
     state = np.asarray(r.state)
     prev = np.concatenate([[init_state], state[:-1]])
-    sc = np.asarray(_tcost(vp, prev, state, v, grade, np.broadcast_to(lam, v.shape), prm))
+    sc = np.asarray(_tcost(vp, prev, state, v, grade, np.broadcast_to(lam, v.shape), prm,
+                           _brake(vp, P_d, v, lam)))
     np.testing.assert_allclose(
         np.asarray(r.switch_cost), np.where(mask, sc, 0.0), rtol=1e-9, atol=1e-6
     )
@@ -119,10 +126,23 @@ def test_level1_full_equals_numpy_viterbi():
     r = l1.level1_full(vp, P_d, v, grade, lam, DT, init_mode=ps.MO, init_gear=0, params=PRM)
     ref = _reference_cost(vp, P_d, v, grade, lam, init_state, PRM)
     np.testing.assert_allclose(float(r.cost), ref, rtol=1e-10)
-    _check_result(r, vp, v, grade, lam, PRM, init_state)
+    _check_result(r, vp, P_d, v, grade, lam, PRM, init_state)
     assert int(r.n_infeasible) == 0
     # the paper's narrative: motor-only on the flat, engine on the climb
     assert int(r.mode[6]) == ps.MM and int(r.mode[10]) in (ps.MC, ps.ME)
+
+
+def test_braking_loss_matches_a_loop():
+    """`braking_loss` against the NumPy loop on the synthetic route (a descent brakes), with
+    unequal open times; zero on driving steps and into the open mode, positive somewhere."""
+    vp, P_d, v, grade, lam = synthetic_route(seed=9)
+    vp = vp.replace(dt_M=1.5, dt_G=0.5)
+    H = _htab(vp, P_d, v, lam).H
+    got = np.asarray(jax.vmap(l1.braking_loss, in_axes=(None, 0, 0, None))(vp, H, P_d, DT))
+    want = ref_braking_loss(vp, H, P_d, DT)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+    assert np.all(got[P_d >= 0] == 0.0) and np.all(got[:, :, ps.MO * 12:] == 0.0)
+    assert np.any(got > 0)
 
 
 def test_switching_costs_reduce_switching():
@@ -176,7 +196,7 @@ def test_mpc_short_horizon_is_feasible_and_not_better():
     full = l1.level1_full(vp, P_d, v, grade, lam, DT, mask, ps.MO, 0, PRM)
     mpc = l1.level1_mpc(vp, P_d, v, grade, lam, DT, mask, ps.MO, 0, PRM, horizon=5)
     assert float(mpc.cost) >= float(full.cost) - 1e-6
-    _check_result(mpc, vp, v, grade, lam, PRM, ps.MO * 12, mask)
+    _check_result(mpc, vp, P_d, v, grade, lam, PRM, ps.MO * 12, mask)
     assert np.all(np.asarray(mpc.state)[-3:] == np.asarray(mpc.state)[-4])
 
 

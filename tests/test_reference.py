@@ -67,7 +67,9 @@ def test_plan_agrees_with_kernels(name):
     tab = ref.split_table(vp, r.pred.P_d, r.pred.v, r.lam)
     H = tab.H.reshape(T, -1)[np.arange(T), s]
     prev = np.concatenate([[ps.MO * n_g if r.pred.v_ref[0] <= 0 else s[0]], s[:-1]])
-    sw = [ref.ref_cost_matrix(vp, r.pred.v[j], r.pred.grade[j], r.lam, PRM)[prev[j], s[j]]
+    brake = ref.ref_braking_loss(vp, tab.H, r.pred.P_d, 1.0)
+    sw = [ref.ref_cost_matrix(vp, r.pred.v[j], r.pred.grade[j], r.lam, PRM,
+                              brake[j])[prev[j], s[j]]
           for j in np.flatnonzero(m)]
     assert np.sum(H[m]) + np.sum(sw) == pytest.approx(r.cost, rel=1e-12)
     assert np.all(s[~m] == s[np.flatnonzero(m)[-1]])  # masked steps keep the state

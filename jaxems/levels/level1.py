@@ -47,6 +47,7 @@ from .. import switching as sw
 from ..params import VehicleParams
 from .powersplit import (
     ENGINE_CONNECTED,
+    MO,
     MOTOR_CONNECTED,
     N_MODES,
     hamiltonian_table,
@@ -271,10 +272,31 @@ def solve_dp(dt_M, dt_G, stage, xs, consts, dconsts, init, mask, first=False, fa
     )
 
 
-def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.SwitchCostParams):
+def braking_loss(vp: VehicleParams, H, P_d, dt):
+    """(3, S) J: what a switch into each state loses of one braking step's recuperation.
+
+    A switch opens the driveline for tau (eq. 12; rows: tau = dt_M for a mode switch, dt_G
+    for a gear switch, the larger for both, as `switching.traction_cost_table`). Braking
+    (P_d < 0), the service brakes then take the demand: for min(tau, dt) the state's
+    Hamiltonian H gives way to the open mode's, a loss of max(0, H_open - H) per second (a
+    hybrid's recuperation, worth -lambda_b P_bi). The traction-interruption cost A20-A22 prices
+    the speed a switch loses to road load, not this; without it Level 1 downshifts through
+    braking as if it recuperated all the way (RegionalDelivery: 2.6 MJ over its switches).
+    Zero driving, into the open mode and into states that cannot run.
+    H: (4, G) the step's Hamiltonian (W, +inf where infeasible); P_d: () W; dt: s."""
+    H_open = jnp.min(H[MO])
+    ok = jnp.isfinite(H) & jnp.isfinite(H_open) & (P_d < 0)
+    lost = jnp.where(ok, jnp.maximum(H_open - jnp.where(ok, H, 0.0), 0.0), 0.0).reshape(-1)
+    taus = jnp.stack([vp.dt_M, vp.dt_G, jnp.maximum(vp.dt_M, vp.dt_G)])
+    return jnp.minimum(taus, dt)[:, None] * lost[None, :]
+
+
+def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.SwitchCostParams,
+                    extra=None):
     """Switching cost (J) of s_from -> s_to at one step (scalars; broadcasts over states).
 
-    The same cost as `switching.switch_cost_matrix`, evaluated for one pair of states.
+    The same cost as `switching.switch_cost_matrix` (with its `extra`, (3, S)), evaluated for
+    one pair of states.
     """
     n_g = vp.gear_ratio.shape[-1]
     m0, g0 = s_from // n_g, s_from % n_g
@@ -285,6 +307,7 @@ def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.S
     w = vp.gear_ratio * vp.r_d * v
     E = sw.sync_energy(vp, ce[m0], cm[m0], w[g0], ce[m1], cm[m1], w[g1], params.averaged)
     trac = sw.traction_cost_table(vp, v, grade, params)  # (3, S)
+    trac = trac if extra is None else trac + extra
     dm, dg = m0 != m1, g0 != g1
     t = jnp.where(dm & dg, trac[2, s_to], jnp.where(dm, trac[0, s_to], trac[1, s_to]))
     c = -lam * E + jnp.where(dm | dg, t, 0.0)
@@ -300,6 +323,7 @@ class _Tables(NamedTuple):
     dconsts: DenseConsts
     none_feasible: jax.Array  # (T,) bool
     lam: jax.Array  # (T,)
+    brake: jax.Array  # (T, 3, S) J, `braking_loss`
 
 
 def _tables(vp, P_d, v, grade, lam, dt, params) -> _Tables:
@@ -310,9 +334,11 @@ def _tables(vp, P_d, v, grade, lam, dt, params) -> _Tables:
     none = ~jnp.any(jnp.isfinite(H), axis=1)
     stage = jnp.where(none[:, None], 0.0, H * dt)
     xs = jax.vmap(transition_inputs, in_axes=(None, 0, 0, 0, None))(vp, v, grade, lam, params)
+    brake = jax.vmap(braking_loss, in_axes=(None, 0, 0, None))(vp, split.H, P_d, dt)
+    xs = xs._replace(trac=xs.trac + params.weight * brake)
     consts = transition_consts(vp, params.averaged)
     dconsts = dense_consts(vp, params.averaged)
-    return _Tables(split, stage, xs, consts, dconsts, none, lam)
+    return _Tables(split, stage, xs, consts, dconsts, none, lam, brake)
 
 
 def _init_cost(init_mode, init_gear, S, n_g, dtype):
@@ -328,8 +354,8 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
     mode, gear = path // n_g, path % n_g
     pick = lambda a: a[k, mode, gear]  # noqa: E731
     prev = jnp.concatenate([start[None], path[:-1]])
-    sc = jax.vmap(transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None))(
-        vp, prev, path, v, grade, tb.lam, params
+    sc = jax.vmap(transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0))(
+        vp, prev, path, v, grade, tb.lam, params, tb.brake
     )
     sc = jnp.where(mask, sc, 0.0)
     Hk = pick(tb.split.H)
@@ -564,6 +590,7 @@ __all__ = [
     "Level1Result",
     "TransitionConsts",
     "TransitionInputs",
+    "braking_loss",
     "dense_consts",
     "fast_transition",
     "level1_batch",
