@@ -535,7 +535,6 @@ class EcmsParams(NamedTuple):
     soc_ref: Any
     dwell: Any  # steps
     switch: sw.SwitchCostParams
-    dt: Any  # s, the plant's step
 
 
 def ecms_lambda(p: EcmsParams, vp, E_b):
@@ -553,8 +552,9 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
     n_g = vp.gear_ratio.shape[-1]
     s_cur = obs.mode * n_g + obs.gear
-    brake = l1.braking_loss(vp, tab.H, obs.P_req, p.dt)
-    C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch, brake)[s_cur]
+    # (not `level1.braking_loss`: paid on the one step this DP sees, the recuperation lost to
+    # a switch always outweighs the one step gained, and it would never switch into braking)
+    C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
     cost = jnp.where(tab.feasible, tab.H, jnp.inf).reshape(-1) + C
     i = jnp.argmin(cost)
     i = jnp.where(jnp.isfinite(cost[i]) & (since >= p.dwell), i, s_cur)
@@ -566,7 +566,7 @@ def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
                    soc_ref=jnp.asarray(opts.soc_ref), dwell=jnp.asarray(opts.dwell),
-                   switch=params, dt=jnp.asarray(dt))
+                   switch=params)
     track = pl.make_track(route, pred)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
