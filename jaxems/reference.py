@@ -60,7 +60,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .levels.powersplit import ENGINE_CONNECTED, MO, MOTOR_CONNECTED, N_MODES
+from .levels.powersplit import ENGINE_CONNECTED, MM, MO, MOTOR_CONNECTED, N_MODES
 from .levels.velocity import P_PENALTY_W, V_CRAWL, steps_for
 from .params import VehicleParams
 from .route import Route, n_nodes
@@ -1079,7 +1079,7 @@ def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
             open_s = max(float(vp.dt_M) if msw else 0.0, float(vp.dt_G) if gsw else 0.0)
             if (msw or gsw) and float(vp.has_motor) > 0.5:
                 sync = float(sync_energy(vp, m0, g0, m1, g1, v[k])) / float(vp.eta_m)
-        driving_mm = mode[k] == 2 and P_d[k] > 0  # M_m makes the lost speed up
+        driving_mm = mode[k] == MM and P_d[k] > 0  # M_m makes the lost speed up
         keep = 1.0 if driving_mm else 1.0 - min(open_s / dt, 1.0)
         out[k] = -P_bi[k] * dt * keep - sync
     return out

@@ -801,6 +801,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     any_feas = jnp.any(feas, axis=(1, 2))
     fuel = jnp.where(any_feas[:, None, None], fuel, 0.0)  # a step beyond capability: free
     dEb = jnp.where(any_feas[:, None, None], dEb, 0.0)
+
     def costs(P_d, v, g, lam):  # the switching costs of Level 1 (with what braking loses)
         H = ps.mode_gear_split(vp, P_d, v, lam).H
         return sw.switch_cost_matrix(vp, v, g, lam, params, l1.braking_loss(vp, H, P_d, dt))

@@ -6,8 +6,10 @@ The explicit Hamiltonian H*_1a of every mode and gear (`powersplit.hamiltonian_t
 per-step state cost of a Viterbi recursion (`jaxems.dp`) over S = 4 x n_gears states
 s = mode * n_gears + gear; the switching costs of Appendix C (`jaxems.switching`) are the
 transition costs. The transition cost from step k-1 to step k uses the inputs of step k
-(speed, grade, lambda_b). The state before step 0 is given (``init_mode``, ``init_gear``) or
-free (``init_mode = -1``); the first step may already switch away from it.
+(speed, grade, lambda_b) and, braking, what the switch loses of step k's recuperation
+(`braking_loss`, added to the traction term). The state before step 0 is given
+(``init_mode``, ``init_gear``) or free (``init_mode = -1``); the first step may already switch
+away from it.
 
 Steps where no (M, G) is feasible (a demand beyond the driveline's capability) get zero state
 cost for every state, so the DP passes through them at the price of switching only; they are
