@@ -145,6 +145,35 @@ def test_braking_loss_matches_a_loop():
     assert np.any(got > 0)
 
 
+_bloss = jax.jit(l1.braking_loss)
+
+
+@settings(max_examples=30)
+@given(
+    P_d=st.floats(-400e3, 400e3),
+    v=st.floats(0.5, 30.0),
+    lam=st.floats(-4.0, -1.0),
+    tau=st.floats(0.1, 3.0),
+)
+def test_braking_loss_properties(P_d, v, lam, tau):
+    """Never negative; zero when driving and into the open mode; it grows with the open time
+    up to one step and no further; a braking step's loss is the state's recuperation value."""
+    H = ps.mode_gear_split(VP, P_d, v, lam).H
+    vp = VP.replace(dt_M=tau, dt_G=tau)
+    b = np.asarray(_bloss(vp, H, P_d, DT))
+    assert np.all(b >= 0.0) and np.all(b[:, ps.MO * 12:] == 0.0)
+    if P_d >= 0:
+        assert np.all(b == 0.0)
+        return
+    b1 = np.asarray(_bloss(VP.replace(dt_M=1.0, dt_G=1.0), H, P_d, DT))
+    np.testing.assert_allclose(b, b1 * min(tau, DT), rtol=1e-12, atol=1e-9)
+    Hn = np.asarray(H).reshape(-1)
+    h_open = np.min(np.asarray(H)[ps.MO])
+    ok = np.isfinite(Hn)
+    np.testing.assert_allclose(b1[0][ok], np.maximum(h_open - Hn[ok], 0.0), rtol=1e-12,
+                               atol=1e-9)
+
+
 def test_switching_costs_reduce_switching():
     vp, P_d, v, grade, lam = synthetic_route(seed=1)
     free = l1.level1_full(
