@@ -228,6 +228,12 @@ def path_open_time(vp: VehicleParams, mode, gear):
     """(T,) seconds of open driveline (eq. 12) at each step of a plan's path (mode, gear: (T,)):
     dt_M at a mode switch, dt_G at a gear switch, the larger at both, as the plant opens it."""
     _, _, mode_sw, gear_sw = _path_switches(mode, gear)
+    return _open_time(vp, mode_sw, gear_sw)
+
+
+def _open_time(vp: VehicleParams, mode_sw, gear_sw):
+    """Seconds the driveline opens for a mode and/or gear switch (flags, any shape): dt_M, dt_G,
+    the larger at both (one event), 0 without a switch."""
     return jnp.maximum(jnp.where(mode_sw, vp.dt_M, 0.0), jnp.where(gear_sw, vp.dt_G, 0.0))
 
 
@@ -337,7 +343,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
 
     mode_sw = (req_mode != st.mode) & ~st.done
     gear_sw = (req_gear != st.gear) & ~st.done & (req_mode != MO)
-    new_open = jnp.maximum(jnp.where(mode_sw, vp.dt_M, 0.0), jnp.where(gear_sw, vp.dt_G, 0.0))
+    new_open = _open_time(vp, mode_sw, gear_sw)
     open_left = jnp.maximum(st.open_left, new_open)
     f_open = jnp.clip(open_left / dt, 0.0, 1.0)
     mode = req_mode

@@ -246,6 +246,19 @@ def battery_path(vp, dE, pid, target):
     return E, E_end, ends
 
 
+def piece_error(dE, pid, target):
+    """(K,) each piece's summed energy change minus its target (dE: (T,), pid: (T,),
+    target: (K,), as `battery_path`)."""
+    return jax.ops.segment_sum(dE, pid, target.shape[0]) - target
+
+
+def held_piece_error(vp, dE, pid, target):
+    """(K,) each piece's end within the battery's limits minus where the targets put it
+    (`battery_path`): what the plant, which holds the limits, would miss."""
+    _, E_end, goal = battery_path(vp, dE, pid, target)
+    return E_end - goal
+
+
 def single_piece(T: int, dtype):
     """The whole route as one piece that ends where it starts (charge sustaining):
     (pid (T,), target (1,)) as `piece_targets` gives them."""
@@ -287,15 +300,11 @@ def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int
         return jnp.where(adj, jnp.where(th > 0, P_b + th * (hi - P_b), P_b + th * (P_b - lo)),
                          P_b)
 
-    def steps_dE(theta):
-        return energy(P_of(theta))
-
     def err(theta):  # decreases with theta (more discharge)
-        return jax.ops.segment_sum(steps_dE(theta), pid, K) - target
+        return piece_error(energy(P_of(theta)), pid, target)
 
-    def err_held(theta):  # the same within the battery's limits (`battery_path`)
-        _, E_end, goal = battery_path(vp, steps_dE(theta), pid, target)
-        return E_end - goal
+    def err_held(theta):  # the same within the battery's limits
+        return held_piece_error(vp, energy(P_of(theta)), pid, target)
 
     one = jnp.ones((K,), P_b.dtype)
     theta = 0.5 * sum(bisect_pieces(err, -one, one, n_bisect))
@@ -416,11 +425,10 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         return steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
 
     def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
-        return jax.ops.segment_sum(plan_dE(lam_t), pid, K) - target
+        return piece_error(plan_dE(lam_t), pid, target)
 
     def held_err(lam_t):  # (K,) the same within the battery's limits, as the plant holds them
-        _, E_end, goal = battery_path(vp, plan_dE(lam_t), pid, target)
-        return E_end - goal
+        return held_piece_error(vp, plan_dE(lam_t), pid, target)
 
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)

@@ -188,6 +188,12 @@ def traction_loss(vp: VehicleParams, F0, v, tau, F_max, params: SwitchCostParams
     )
 
 
+def open_times(vp: VehicleParams):
+    """(3,) seconds of open driveline (eq. 12) of a mode switch only, a gear switch only and
+    both (one event of max(dt_M, dt_G)): the rows of `traction_cost_table`."""
+    return jnp.stack([vp.dt_M, vp.dt_G, jnp.maximum(vp.dt_M, vp.dt_G)])
+
+
 def traction_cost_table(vp: VehicleParams, v, grade, params: SwitchCostParams):
     """Traction-interruption cost (J) of switching into each state: (3, S).
 
@@ -196,7 +202,7 @@ def traction_cost_table(vp: VehicleParams, v, grade, params: SwitchCostParams):
     """
     F0 = pt.road_load(vp, v, grade)
     F_max = max_driveline_force(vp, v, params.v_min)  # (4, G)
-    taus = jnp.stack([vp.dt_M, vp.dt_G, jnp.maximum(vp.dt_M, vp.dt_G)])
+    taus = open_times(vp)
     c = traction_loss(vp, F0, v, taus[:, None, None], F_max[None], params).cost  # (3, 4, G)
     c = c + stranded_cost(vp, v, F0, taus)
     c = c.at[:, MO, :].set(0.0)

@@ -289,8 +289,7 @@ def braking_loss(vp: VehicleParams, H, P_d, dt):
     H_open = jnp.min(H[MO])
     ok = jnp.isfinite(H) & jnp.isfinite(H_open) & (P_d < 0)
     lost = jnp.where(ok, jnp.maximum(H_open - jnp.where(ok, H, 0.0), 0.0), 0.0).reshape(-1)
-    taus = jnp.stack([vp.dt_M, vp.dt_G, jnp.maximum(vp.dt_M, vp.dt_G)])
-    return jnp.minimum(taus, dt)[:, None] * lost[None, :]
+    return jnp.minimum(sw.open_times(vp), dt)[:, None] * lost[None, :]
 
 
 def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.SwitchCostParams,
