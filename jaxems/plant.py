@@ -11,13 +11,19 @@ The plant is the model of section 2 with what the EMS levels abstract away put b
   target speed for the end of a step is the planned speed one step ahead of where the plan is
   at the current position, so that launches from standstill proceed.
 - Stops: the vehicle brakes to rest exactly at each stop position and stands for the stop's
-  duration (open driveline, engine off in a hybrid, idling in a conventional truck).
+  duration (open driveline, engine off in a hybrid, idling in a conventional truck). In the
+  last second(s) of a stop (the longer open time) it engages the state the controller asks
+  for, so that the switch's open driveline overlaps the standing time and the launch starts
+  when the stop ends, as a driver engages the gear before setting off.
 - Traction limits: when the active mode and gear cannot deliver the demanded power the vehicle
   falls short of the reference speed; service brakes take braking power the powertrain cannot.
 - Battery limits: E_b never leaves [0, E_b_max]; the battery power is clipped and the engine
   covers the rest where it is connected.
-- A low-level protection (Level 0) switches to the cheapest speed-feasible state when the active
-  one becomes infeasible (for example the engine below idle after a slow climb).
+- A low-level protection (Level 0) keeps the driveline in a state that runs at the current
+  speed and can deliver the reference's own acceleration there (at least holding speed): the
+  requested state where it can, else the current one, else the cheapest that can (for example
+  the engine below idle after a slow climb, or a gear planned for the reference's speed when
+  the vehicle is behind it after a switch).
 
 Energy accounting: every step records fuel, battery energy, road work F_0 ds, kinetic energy and
 each loss (engine, clutch slip, motor, battery, service brakes, synchronisation, idling), so that
@@ -308,15 +314,21 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     cstate, cmd = controller(cparams, cstate, vp, obs)
     lam = jnp.asarray(cmd.lam, dtype=v0.dtype)
 
-    # --- state transitions: standstill forces the open mode; Level 0 protection keeps the
-    # driveline in a state that can run at this speed and deliver what is needed
+    # --- state transitions: standstill forces the open mode, except in the stop's last
+    # second(s), when the launch state is engaged; Level 0 protection keeps the driveline in a
+    # state that can run at this speed and deliver what is needed
     at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
+    engage = standing & (st.dwell <= jnp.maximum(jnp.maximum(vp.dt_M, vp.dt_G), dt))
     n_g = vp.gear_ratio.shape[-1]
     s_cur = st.mode * n_g + st.gear
-    s_req = jnp.where(at_rest, MO * n_g + st.gear, cmd.mode * n_g + cmd.gear)
-    # what must be delivered: the full demand while launching, else at least holding speed
-    P_hold = F0 * v0
-    P_need = jnp.where(v0 > 1.0, jnp.minimum(P_req, jnp.maximum(P_hold, 0.0)), P_req)
+    s_cmd = cmd.mode * n_g + cmd.gear
+    s_req = jnp.where(at_rest & ~engage, MO * n_g + st.gear, s_cmd)
+    # what must be delivered: the full demand from standstill; moving, the force of the
+    # reference's own acceleration here (not the catch-up after a switch), at least holding
+    # speed (a state that only holds speed leaves the vehicle behind the reference for good)
+    a_ref = (_ref_speed(track, j + 1, frac) - v_ref_here) / dt
+    P_follow = jnp.maximum(F0 + jnp.maximum(vp.mass * a_ref, 0.0), 0.0) * v0
+    P_need = jnp.where(v0 > 0, jnp.minimum(P_req, P_follow), P_req)
     # a switch opens the driveline: the state switched into must still run after the speed
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * jnp.maximum(vp.dt_M, vp.dt_G) / vp.mass

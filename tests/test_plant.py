@@ -86,6 +86,23 @@ def test_stops_are_served_for_their_duration():
     assert np.all(np.diff(s) >= -1e-9) and s.max() <= L + 1e-6
 
 
+def test_launch_state_engaged_while_standing():
+    # the switch out of the open mode falls in the stop's last second: the truck sets off in
+    # the step right after the stop's duration, already in a driving state
+    res = run(VP, -2.2)
+    s = np.asarray(res.trace.s)
+    v = np.asarray(res.trace.v)
+    mode = np.asarray(res.trace.mode)
+    at = np.flatnonzero((np.abs(s - 800.0) < 1e-3) & (v == 0))
+    assert at.size > 0 and np.all(np.diff(at) == 1)
+    # arrival at the end of step at[0] - 1; standing steps at[0] .. at[0] + 9; launch at[0] + 10
+    assert at.size == 10 + 1, at.size
+    launch = at[-1]
+    assert v[launch + 1] > 0
+    assert mode[launch] != ps.MO and mode[launch - 1] != ps.MO  # engaged in the last second
+    assert np.all(mode[at[0]:launch - 1] == ps.MO)
+
+
 def test_trip_time_close_to_level3():
     res = run(VP, -2.2)
     # the greedy controller switches often (each switch opens the driveline for 1 s)
