@@ -104,13 +104,23 @@ def _motor_limit(f, w):
 
 # ------------------------------------------------------------------------------- Level 3
 def a_fwd(vp, v, grade, w):
-    """Forward-pass acceleration (m/s^2): min(a_max, (F_max(v) - F_0) / m), F_max of the
-    engine alone at speed w behind a CVT, capped by the peak torque in gear 1 (scalar w and
-    grade; v a scalar or an array)."""
+    """Forward-pass acceleration (m/s^2): a = min(a_max, (F_max(v) - F_0) / m), F_max of the
+    engine alone at speed w behind a CVT, capped by the peak torque in gear 1, then slowed by
+    the upshifts' open driveline where a > 0: a / (1 + k max(a + F_0 / m, 0)),
+    k = dt_G / (max(v, v_1) ln r) s per m/s, r the mean ratio step, v_1 gear 1's top speed
+    (scalar w and grade; v a scalar or an array)."""
     f = vp if isinstance(vp, SimpleNamespace) else _veh(vp)
     p_max = np.interp(w, f.te_max_w, f.te_max) * w
     f_max = np.minimum(p_max / np.maximum(v, 1e-6), np.max(f.te_max) * f.gear_ratio[0] * f.r_d)
-    return np.minimum(f.a_max, (f_max - road_load(f, v, grade)) / f.mass)
+    f0 = road_load(f, v, grade)
+    a = np.minimum(f.a_max, (f_max - f0) / f.mass)
+    n = len(f.gear_ratio)
+    if n < 2:
+        return a
+    ln_r = math.log(f.gear_ratio[0] / f.gear_ratio[-1]) / (n - 1)
+    v1 = f.we_max / (f.gear_ratio[0] * f.r_d)
+    k = f.dt_G / (np.maximum(v, v1) * ln_r)
+    return np.where(a > 0, a / (1.0 + k * np.maximum(a + f0 / f.mass, 0.0)), a)
 
 
 def ref_profile(route: Route, vp: VehicleParams, w=None):

@@ -318,3 +318,41 @@ def test_float32_agrees_with_float64():
     assert e32["trip_time_s"] == pytest.approx(e64["trip_time_s"], rel=1e-3)
     assert e32["energy_traction_MJ"] == pytest.approx(e64["energy_traction_MJ"], rel=1e-3)
     assert e32["energy_net_MJ"] == pytest.approx(e64["energy_net_MJ"], rel=1e-3, abs=1e-3)
+
+
+@settings(max_examples=30)
+@given(
+    v=st.floats(0.0, 30.0),
+    grade=st.floats(-0.08, 0.08),
+    mass=st.floats(10e3, 40e3),
+    dt_g=st.floats(0.0, 3.0),
+)
+def test_forward_acceleration_counts_the_upshifts(v, grade, mass, dt_g):
+    """a_fwd is the full-traction acceleration slowed by the upshifts' open time: the plain
+    formula without open time, never above it, and a step dv takes dv / a plus the shifts in it
+    (k dv of open time, in which road load costs k dv F_0 / m of speed to make up at a)."""
+    vp = VP.replace(mass=mass, dt_G=dt_g)
+    w = float(vp.w_pred)
+    a = float(vel.forward_acceleration(vp, v, grade, w))
+    plain = float(vel.forward_acceleration(vp.replace(dt_G=0.0), v, grade, w))
+    assert a <= plain + 1e-12
+    if plain <= 0 or dt_g == 0:
+        assert a == pytest.approx(plain, rel=1e-12, abs=1e-12)
+        return
+    k = float(vel.shift_time_per_speed(vp, v))
+    f0 = float(np_road_load(vp, v, grade))
+    # time per unit speed: 1/a = 1/plain + k (1 + max(F_0 / (m plain), -1))
+    expect = 1.0 / plain + k * (1.0 + max(f0 / (mass * plain), -1.0))
+    assert 1.0 / a == pytest.approx(expect, rel=1e-9)
+    # one upshift per speed ratio step above gear 1's top speed
+    r = vp.gear_ratio
+    ln_r = math.log(float(r[0] / r[-1])) / (len(r) - 1)
+    v1 = float(vp.we_max / (r[0] * vp.r_d))
+    assert k == pytest.approx(dt_g / (max(v, v1) * ln_r), rel=1e-12)
+
+
+def test_open_time_lengthens_the_trip():
+    fast = velocity_profile(MIXED, VP.replace(dt_G=0.0))  # launches from stops
+    slow = velocity_profile(MIXED, VP)
+    assert float(slow.trip_time) > float(fast.trip_time)
+    assert np.all(np.asarray(slow.v) <= np.asarray(fast.v) + 1e-9)

@@ -6,18 +6,25 @@ predicted speed. On the distance grid of a `Route` (nodes s_i, cells of length d
     vlim_i   = min(vmax_i, v0), and 0 at stop nodes
     forward  v_{i+1} = min(vlim_{i+1}, sqrt(max(v_i^2 + 2 a ds, 0)))
              a       = min(a_fwd(v_i), a_fwd(v_pred)),  v_pred^2 = v_i^2 + 2 a_fwd(v_i) ds
-             a_fwd(v) = min(a_max, (F_max(v) - F_0(v, grade_i)) / m)
+             a_fwd(v) = a_t / (1 + k(v) max(a_t + F_0 / m, 0))  where a_t > 0, else a_t
+             a_t(v)   = min(a_max, (F_max(v) - F_0(v, grade_i)) / m)
              F_max(v) = min(P_e_max(w_pred) / v, T_e_peak r_G(1) r_d)
+             k(v)     = dt_G / (max(v, v_1) ln r)
     backward v_i = min(vlim_i, sqrt(v_{i+1}^2 + 2 a_min ds))
     v_c      = min(v_forward, v_backward)
 
 F_max is the tractive force of the engine alone (mode M_e) behind a continuously variable
 gearbox holding the engine at w_pred (the paper's 1100 rpm, `VehicleParams.w_pred`), capped at
-low speed by the peak engine torque in the lowest gear. The backward pass brakes at the comfort
-limit a_min (service brakes always allowed). a_fwd decreases with v, so taking the smaller of
-its values at the cell's start speed and at the predicted end speed keeps the traction force
-within F_max over the whole cell (the driveline power stays within P_e_max while the forward pass
-limits the speed). Both passes are `lax.scan`s in the v^2 form (the
+low speed by the peak engine torque in the lowest gear. A stepped gearbox opens the driveline
+for dt_G at each upshift (eq. 12): accelerating, one upshift falls in each speed step v ln r
+above gear 1's top speed v_1 (r the mean ratio step), and in it the vehicle gains nothing and
+loses F_0 dt_G / m to road load, so the mean acceleration is a_fwd, not a_t (without it the
+reference accelerates through the shifts as a CVT would, and every launch leaves the plant a
+second behind per shift; the paper's prediction has no shifts). The backward pass brakes at the
+comfort limit a_min (service brakes always allowed). Taking the smaller of a_fwd at the cell's
+start speed and at the predicted end speed keeps the traction force within F_max over the whole
+cell (a_t decreases with v, and a_fwd <= a_t; the driveline power stays within P_e_max while the
+forward pass limits the speed). Both passes are `lax.scan`s in the v^2 form (the
 speed squared is linear in s at constant acceleration). The start node is entered at standstill
 when it is a stop, at its limit otherwise (flying start); the end is standstill when the last
 node is a stop, free otherwise.
@@ -143,10 +150,30 @@ def traction_limit(vp: VehicleParams, v, w_pred):
     return jnp.minimum(p_max / jnp.maximum(v, 1e-6), f_torque)
 
 
+def shift_time_per_speed(vp: VehicleParams, v):
+    """(s per m/s) open-driveline time of the upshifts per unit of speed gained at speed v.
+
+    Accelerating through a gearbox whose ratios step by r, one upshift falls in each speed
+    interval dv = v ln r above gear 1's top speed v_1 = w_max / (r_G(1) r_d); each opens the
+    driveline for dt_G (eq. 12). r is the mean step of the vehicle's ratios."""
+    n = vp.gear_ratio.shape[-1]
+    if n < 2:
+        return jnp.zeros_like(jnp.asarray(v, dtype=jnp.result_type(v, float)))
+    ln_r = jnp.log(vp.gear_ratio[..., 0] / vp.gear_ratio[..., -1]) / (n - 1)
+    v1 = vp.we_max / (vp.gear_ratio[..., 0] * vp.r_d)
+    return vp.dt_G / (jnp.maximum(v, v1) * ln_r)
+
+
 def forward_acceleration(vp: VehicleParams, v, grade, w_pred):
-    """a_fwd (m/s^2) = min(a_max, (F_max(v) - F_0(v, grade)) / m): mode 1, full traction."""
+    """a_fwd (m/s^2): full traction, a = min(a_max, (F_max(v) - F_0(v, grade)) / m), slowed by
+    the upshifts on the way: a / (1 + k(v) max(a + F_0 / m, 0)) where a > 0, k the upshifts'
+    open time per m/s (`shift_time_per_speed`). During each shift the vehicle loses
+    F_0 dt_G / m of speed and gains nothing, so a speed step dv takes dv / a plus
+    k dv (1 + F_0 / (m a)): the mean acceleration a driveline with a stepped gearbox achieves."""
     f0 = pt.road_load(vp, v, grade)
-    return jnp.minimum(vp.a_max, (traction_limit(vp, v, w_pred) - f0) / vp.mass)
+    a = jnp.minimum(vp.a_max, (traction_limit(vp, v, w_pred) - f0) / vp.mass)
+    k = shift_time_per_speed(vp, v)
+    return jnp.where(a > 0, a / (1.0 + k * jnp.maximum(a + f0 / vp.mass, 0.0)), a)
 
 
 def _limits(route: Route, vp: VehicleParams):
