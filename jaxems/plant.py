@@ -89,14 +89,18 @@ class Obs(NamedTuple):
 class Command(NamedTuple):
     """A controller's decision: requested mode and gear, costate for the split, optional P_b.
 
-    P_b = nan means: split with the Level 1 optimum at `lam`; a finite P_b (for the DP bound)
-    is applied directly, clipped to what the active state and the battery allow.
+    P_b = nan means: split with the Level 1 optimum at `lam`; a finite P_b (a plan's) is
+    applied directly, clipped to what the active state and the battery allow. catch_up: with a
+    finite P_b, whether the battery may also cover the power of recovering the reference speed
+    after a switch (beyond the reference's own acceleration); if not, only the engine's headroom
+    and the commanded motor power recover it, so the battery follows the plan's.
     """
 
     mode: Any
     gear: Any
     lam: Any
     P_b: Any
+    catch_up: Any = True
 
 
 # A controller: (ctrl_params, ctrl_state, vehicle, obs) -> (ctrl_state, Command). Pure; the
@@ -371,6 +375,13 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     traction = (1.0 - f_open) * r.ok
     cap_hi = traction * (r.e_hi + r.m_lim)
     P_dem = jnp.minimum(P_req, cap_hi)  # traction-limited demand (brakes take any excess)
+    # a plan's battery power: recovering the reference after a switch on the engine's headroom
+    # (and the commanded motor power) unless the controller lets the battery cover it
+    planned = jnp.isfinite(cmd.P_b)
+    pm_cmd = ps.pm_of_pb(vp, r, jnp.where(planned, cmd.P_b, 0.0))
+    cap_plan = traction * (jnp.where(r.ce, r.e_hi, 0.0) + jnp.clip(pm_cmd, 0.0, r.m_lim))
+    limit = planned & ~jnp.asarray(cmd.catch_up, bool)
+    P_dem = jnp.where(limit, jnp.minimum(P_dem, jnp.maximum(P_need, cap_plan)), P_dem)
     opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
     P_b = jnp.where(jnp.isfinite(cmd.P_b), cmd.P_b, opt.P_b)
     P_b = jnp.where(traction > 0, P_b, 0.0)

@@ -103,6 +103,33 @@ def test_launch_state_engaged_while_standing():
     assert np.all(mode[at[0]:launch - 1] == ps.MO)
 
 
+def engine_first(catch_up, cstate, vp, obs):
+    """The greedy state with a planned battery power of 0 (the engine drives where it can)."""
+    _, cmd = greedy(-2.2, cstate, vp, obs)
+    return cstate, cmd._replace(P_b=jnp.zeros(()), catch_up=catch_up)
+
+
+@jax.jit
+def run_planned(catch_up):
+    track = P.make_track(ROUTE, PRED)
+    return P.run_plant(VP, track, engine_first, catch_up, jnp.zeros(()), ps.MO, 0, N_PLANT)
+
+
+def test_catch_up_on_the_battery_only_when_allowed():
+    # recovering the reference after a switch: with the battery (catch_up) it drains more and
+    # arrives sooner; without, the battery covers only what the reference's own acceleration
+    # needs beyond the engine
+    with_b, without = run_planned(True), run_planned(False)
+    assert bool(with_b.final.done) and bool(without.final.done)
+
+    def drawn(res):
+        return float(np.sum(np.maximum(np.asarray(res.trace.P_b), 0.0)))
+
+    assert drawn(without) < drawn(with_b)
+    assert float(without.final.tot.trip_time) >= float(with_b.final.tot.trip_time)
+    assert rel_balance(without, VP) < 1e-3
+
+
 def test_trip_time_close_to_level3():
     res = run(VP, -2.2)
     # the greedy controller switches often (each switch opens the driveline for 1 s)
