@@ -301,7 +301,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     t_stop = track.stop_t[i_next]
     has_stop = jnp.isfinite(s_stop)
     d_stop = jnp.maximum(s_stop - s0, 0.0)
-    standing = st.dwell > 0
+    standing = st.dwell > 0.5 * dt  # the stop's remaining time, to the nearest step
     # never below Level 3's crawl speed short of a stop or the end (a reference that rounds to
     # zero just before a stop must not leave the truck standing there)
     d_left = jnp.minimum(d_stop, jnp.maximum(track.length - s0, 0.0))
@@ -322,7 +322,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # second(s), when the launch state is engaged; Level 0 protection keeps the driveline in a
     # state that can run at this speed and deliver what is needed
     at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
-    engage = standing & (st.dwell <= jnp.maximum(jnp.maximum(vp.dt_M, vp.dt_G), dt))
+    engage = standing & (st.dwell <= 0.5 * dt + jnp.maximum(jnp.maximum(vp.dt_M, vp.dt_G), dt))
     n_g = vp.gear_ratio.shape[-1]
     s_cur = st.mode * n_g + st.gear
     s_cmd = cmd.mode * n_g + cmd.gear
@@ -410,10 +410,14 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     P_wheel = jnp.where(short, (0.5 * vp.mass * (v1**2 - v0**2) + F0 * ds) / dt, P_wheel)
     P_brake = P_wheel - P_p
     arrived = has_stop & (d_stop - ds <= 1e-3) & (v1 <= 1e-9) & ~standing
-    dwell = jnp.where(arrived, t_stop, jnp.maximum(st.dwell - dt, 0.0))
+    # braking to rest at constant deceleration reaches the stop 2 ds / v0 into the step (at
+    # once when already at rest): the stop's time runs from there
+    t_in = jnp.clip(jnp.where(v0 + v1 > 0, 2.0 * ds / jnp.maximum(v0 + v1, 1e-12), 0.0), 0.0, dt)
+    dwell = jnp.where(arrived, jnp.maximum(t_stop - (dt - t_in), 0.0),
+                      jnp.maximum(st.dwell - dt, 0.0))
     served = jnp.where(arrived, s_stop, st.served)
     s1 = jnp.where(arrived, s_stop, s0 + ds)
-    finished = (s1 >= track.length - 1e-3) & (dwell <= 0)
+    finished = (s1 >= track.length - 1e-3) & (dwell <= 0.5 * dt)
 
     P_bi = pt.battery_internal(vp, P_b)
     E_b1 = jnp.clip(st.E_b - P_bi * dt - E_sync_b, 0.0, vp.E_b_max)
