@@ -115,10 +115,10 @@ def a_fwd(vp, v, grade, w):
     f0 = road_load(f, v, grade)
     a = np.minimum(f.a_max, (f_max - f0) / f.mass)
     n = len(f.gear_ratio)
-    if n < 2:
+    ln_r = abs(math.log(f.gear_ratio[0] / f.gear_ratio[-1])) / (n - 1) if n > 1 else 0.0
+    if ln_r <= 1e-9:  # one gear, or gears of one ratio: nothing to shift
         return a
-    ln_r = math.log(f.gear_ratio[0] / f.gear_ratio[-1]) / (n - 1)
-    v1 = f.we_max / (f.gear_ratio[0] * f.r_d)
+    v1 = f.we_max / (np.max(f.gear_ratio) * f.r_d)
     k = f.dt_G / (np.maximum(v, v1) * ln_r)
     return np.where(a > 0, a / (1.0 + k * np.maximum(a + f0 / f.mass, 0.0)), a)
 

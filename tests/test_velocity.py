@@ -356,3 +356,13 @@ def test_open_time_lengthens_the_trip():
     slow = velocity_profile(MIXED, VP)
     assert float(slow.trip_time) > float(fast.trip_time)
     assert np.all(np.asarray(slow.v) <= np.asarray(fast.v) + 1e-9)
+
+
+def test_no_shift_time_without_ratio_steps():
+    # gears of one ratio (a gearbox base of 1) need no upshifts: the plain acceleration, finite
+    vp = VP.replace(gear_ratio=np.full(12, 7.0))
+    k = np.asarray(vel.shift_time_per_speed(vp, np.array([0.0, 5.0, 20.0])))
+    assert np.all(k == 0.0)
+    a = float(vel.forward_acceleration(vp, 5.0, 0.0, float(vp.w_pred)))
+    plain = float(vel.forward_acceleration(vp.replace(dt_G=0.0), 5.0, 0.0, float(vp.w_pred)))
+    assert math.isfinite(a) and a == pytest.approx(plain, rel=1e-12)

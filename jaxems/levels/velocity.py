@@ -155,13 +155,16 @@ def shift_time_per_speed(vp: VehicleParams, v):
 
     Accelerating through a gearbox whose ratios step by r, one upshift falls in each speed
     interval dv = v ln r above gear 1's top speed v_1 = w_max / (r_G(1) r_d); each opens the
-    driveline for dt_G (eq. 12). r is the mean step of the vehicle's ratios."""
+    driveline for dt_G (eq. 12). r is the mean step of the vehicle's ratios; with one gear, or
+    gears of one ratio, nothing is shifted (0)."""
     n = vp.gear_ratio.shape[-1]
+    v = jnp.asarray(v, dtype=jnp.result_type(v, float))
     if n < 2:
-        return jnp.zeros_like(jnp.asarray(v, dtype=jnp.result_type(v, float)))
-    ln_r = jnp.log(vp.gear_ratio[..., 0] / vp.gear_ratio[..., -1]) / (n - 1)
-    v1 = vp.we_max / (vp.gear_ratio[..., 0] * vp.r_d)
-    return vp.dt_G / (jnp.maximum(v, v1) * ln_r)
+        return jnp.zeros_like(v)
+    ln_r = jnp.abs(jnp.log(vp.gear_ratio[..., 0] / vp.gear_ratio[..., -1])) / (n - 1)
+    v1 = vp.we_max / (jnp.max(vp.gear_ratio, axis=-1) * vp.r_d)
+    shifts = ln_r > 1e-9
+    return jnp.where(shifts, vp.dt_G / (jnp.maximum(v, v1) * jnp.where(shifts, ln_r, 1.0)), 0.0)
 
 
 def forward_acceleration(vp: VehicleParams, v, grade, w_pred):
