@@ -383,7 +383,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     limit = planned & ~jnp.asarray(cmd.catch_up, bool)
     P_dem = jnp.where(limit, jnp.minimum(P_dem, jnp.maximum(P_need, cap_plan)), P_dem)
     opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
-    P_b = jnp.where(jnp.isfinite(cmd.P_b), cmd.P_b, opt.P_b)
+    P_b = jnp.where(planned, cmd.P_b, opt.P_b)
     P_b = jnp.where(traction > 0, P_b, 0.0)
     # battery power range of this state at this demand, and the battery's energy limits
     pb_lo = ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))
