@@ -250,6 +250,12 @@ def _open_time(vp: VehicleParams, mode_sw, gear_sw):
 idle_fuel_power = ps.idle_fuel_power
 
 
+def _stands(dwell, dt):
+    """Whether a stop's remaining time dwell (s) still holds the vehicle for this step: the
+    time runs from the arrival within a step and ends at the nearest step."""
+    return dwell > 0.5 * dt
+
+
 def _interp_grade(track: Track, s):
     i = jnp.clip(jnp.searchsorted(track.grid_s, s, side="right") - 1, 0, track.grade.shape[0] - 1)
     return track.grade[i]
@@ -289,7 +295,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     s0, v0 = st.s, st.v
     j, frac = _ref_position(track, s0)
     v_ref_here = _ref_speed(track, j, frac)
-    v_tgt = _ref_speed(track, j + 1, frac)
+    v_ref_next = _ref_speed(track, j + 1, frac)
+    v_tgt = v_ref_next
     grade = _interp_grade(track, s0)
     F0 = pt.road_load(vp, v0, grade)
 
@@ -301,7 +308,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     t_stop = track.stop_t[i_next]
     has_stop = jnp.isfinite(s_stop)
     d_stop = jnp.maximum(s_stop - s0, 0.0)
-    standing = st.dwell > 0.5 * dt  # the stop's remaining time, to the nearest step
+    standing = _stands(st.dwell, dt)
     # never below Level 3's crawl speed short of a stop or the end (a reference that rounds to
     # zero just before a stop must not leave the truck standing there)
     d_left = jnp.minimum(d_stop, jnp.maximum(track.length - s0, 0.0))
@@ -322,7 +329,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # second(s), when the launch state is engaged; Level 0 protection keeps the driveline in a
     # state that can run at this speed and deliver what is needed
     at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
-    engage = standing & (st.dwell <= 0.5 * dt + jnp.maximum(jnp.maximum(vp.dt_M, vp.dt_G), dt))
+    t_open = _open_time(vp, True, True)  # the longer open time (a mode and gear switch)
+    engage = standing & ~_stands(st.dwell - jnp.maximum(t_open, dt), dt)
     n_g = vp.gear_ratio.shape[-1]
     s_cur = st.mode * n_g + st.gear
     s_cmd = cmd.mode * n_g + cmd.gear
@@ -330,12 +338,12 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # what must be delivered: the full demand from standstill; moving, the force of the
     # reference's own acceleration here (not the catch-up after a switch), at least holding
     # speed (a state that only holds speed leaves the vehicle behind the reference for good)
-    a_ref = (_ref_speed(track, j + 1, frac) - v_ref_here) / dt
+    a_ref = (v_ref_next - v_ref_here) / dt
     P_follow = jnp.maximum(F0 + jnp.maximum(vp.mass * a_ref, 0.0), 0.0) * v0
     P_need = jnp.where(v0 > 0, jnp.minimum(P_req, P_follow), P_req)
     # a switch opens the driveline: the state switched into must still run after the speed
     # lost meanwhile
-    dv_sw = jnp.maximum(F0, 0.0) * jnp.maximum(vp.dt_M, vp.dt_G) / vp.mass
+    dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
     r_now = all_ranges(vp, v_op)
     ok_now = capable(vp, r_now, st.E_b, P_need, dt)
     ok_after = ok_now & capable(vp, all_ranges(vp, jnp.maximum(v_op - dv_sw, 0.1)), st.E_b,
@@ -417,7 +425,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
                       jnp.maximum(st.dwell - dt, 0.0))
     served = jnp.where(arrived, s_stop, st.served)
     s1 = jnp.where(arrived, s_stop, s0 + ds)
-    finished = (s1 >= track.length - 1e-3) & (dwell <= 0.5 * dt)
+    finished = (s1 >= track.length - 1e-3) & ~_stands(dwell, dt)
 
     P_bi = pt.battery_internal(vp, P_b)
     E_b1 = jnp.clip(st.E_b - P_bi * dt - E_sync_b, 0.0, vp.E_b_max)
