@@ -68,11 +68,11 @@ def test_multilevel_close_to_the_dp_bound(runs):
     f_ml, f_dp = corrected(runs["multilevel"]), corrected(runs["dp-bound"])
     # target 1 %: not reached. Both end charge sustaining here, so this is fuel against fuel;
     # the bound runs M_c with a continuous battery power where Level 1, at Level 2's guard,
-    # takes either side (M_m or the engine) in discrete stretches: about 5.5 % more fuel (3.7 %
-    # before the plant stopped recovering speed on the battery below a plan's energy, which
-    # the bound's plant run gained most from)
-    assert 0.0 < (f_ml - f_dp) / f_dp < 0.07
-    # the MPC, at the guard on the side of Level 2's I2b sequence, comes closer (3.8 %)
+    # takes either side (M_m or the engine) in discrete stretches: about 3.4 % more fuel (5.5 %
+    # while Level 1 joined the sides of a guard only discharging first, which emptied the
+    # battery on the first climb)
+    assert 0.0 < (f_ml - f_dp) / f_dp < 0.045
+    # the MPC, at the guard on the side of Level 2's I2b sequence: 3.8 %
     assert 0.0 < (corrected(runs["multilevel-mpc"]) - f_dp) / f_dp < 0.05
 
 
@@ -80,13 +80,12 @@ def test_iteration_converges_and_mpc_is_close(runs):
     it = runs["multilevel"].extra
     fuel = np.asarray(it.fuel_J) + np.asarray(it.lambda_b) * np.asarray(it.delta_Eb_J)
     assert fuel.shape == (2,)
-    # paper 0.1 %, target 0.5 %: 0.15 % here (raw fuel 3 %: iteration 0 ends 3 % of the
+    # paper 0.1 %, target 0.5 %: 0.03 % here (raw fuel 4 %: iteration 0 ends 4 % of the
     # battery low, iteration 1 makes up for the plant's drift)
     assert abs(fuel[1] - fuel[0]) / fuel[0] < 0.005
     f_ml, f_mpc = corrected(runs["multilevel"]), corrected(runs["multilevel-mpc"])
-    # paper 0.2-0.4 %, target 1 %: the MPC is 2.5 % below the iteration here (it re-plans from
-    # the measured battery; the iteration is 3 % above the bound, see above)
-    assert abs(f_mpc - f_ml) / f_ml < 0.04
+    # paper 0.2-0.4 %, target 1 %: the MPC is 0.4 % above the iteration here
+    assert abs(f_mpc - f_ml) / f_ml < 0.01
 
 
 def test_charge_sustenance(runs):
