@@ -102,6 +102,16 @@ def test_charge_sustenance(runs):
         assert abs(runs[name]["delta_Eb_J"]) < 0.2 * size, name
 
 
+def test_plan_the_plant_can_follow(runs):
+    """At the first climb's guard (motor alone or the engine) Level 1 joins the sides so that
+    its battery stays within the limits: joining them discharging first emptied the battery
+    at the top, and the plant then cruised on the engine where the plan cruised on the motor.
+    The iteration's battery stays clear of empty, as the bound's does."""
+    size = float(VP.E_b_max)
+    for name in ("multilevel", "dp-bound"):
+        assert runs[name]["Eb_min_J"] > 0.02 * size, name
+
+
 def test_eco_without_a_band_drives_level3(runs):
     """The short track's limit (25 km/h) is below the cruise speed, so the overspeed band does
     not apply: at Level 3's trip time no profile under Level 3's is as fast, so eco-driving
