@@ -408,18 +408,18 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     bisection on all pieces at once, so that the DP's plan changes the battery by the piece's
     target (charge sustaining over the last piece; a limit reached where Level 2 reaches it).
     Where a piece's energy jumps with the shift (a guard, as in I2 of Level 2) the plans either
-    side are joined in time within the piece, in either order: the discharging side up to a step
-    t_s and the charging side after, or the reverse, t_s found by bisection (I2b's single
-    switch). Each piece then takes, of the candidates whose end comes closest to its target
-    (within tol_rel E_b_max) with the battery held within its limits (`battery_path`: a plan that
-    drains the battery below empty on the way ends higher in the plant than its sum says; the
-    bisection on t_s judges ends the same way), the one whose battery the limits hold least on
-    the way: where the plan's battery is held, the plant cannot do what the plan does (the
-    discharging side first on a climb empties the battery, and the plant then cruises on the
-    engine where the plan cruises on the motor: short track 7.42 MJ against 7.27 with the
-    charging side first). Where Level 1's decisions move the battery in large steps (a whole
-    climb on the motor or not) a residual remains. The plans' balances count what their
-    switches cost the battery (`steps_energy`).
+    side are joined in time within the piece: one side up to a step t_s and the other after,
+    t_s found by bisection (I2b's single switch). The side whose plan alone the battery's limits
+    hold less goes first: where the plan's battery is held, the plant cannot do what the plan
+    does (on the short track's first climb the discharging side first emptied the battery, and
+    the plant then cruised on the engine where the plan cruised on the motor: 7.42 MJ corrected
+    against 7.27 with the charging side first). Each piece then takes, of the candidates whose
+    end comes closest to its target (within tol_rel E_b_max) with the battery held within its
+    limits (`battery_path`: a plan that drains the battery below empty on the way ends higher in
+    the plant than its sum says; the bisection on t_s judges ends the same way), the one whose
+    battery the limits hold least on the way. Where Level 1's decisions move the battery in
+    large steps (a whole climb on the motor or not) a residual remains. The plans' balances
+    count what their switches cost the battery (`steps_energy`).
     Without Level 2 pieces (pid all 0, target (1,) = [0]) this is charge sustaining.
     Returns (Level1Result, lambda_b (T,) used)."""
     lo_b, hi_b = l2.LAM_BRACKET
@@ -454,6 +454,11 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def joined(ts, first, then):  # ts: (K,) the step of each piece where `then` takes over
         return jnp.where(k < ts[pid], first, then)
 
+    def score(lam_t):  # per piece: held error, and the energy the limits hold on the way
+        dE = plan_dE(lam_t)
+        e = held_piece_error(vp, dE, pid, target)
+        return e, jnp.abs(e - piece_error(dE, pid, target))
+
     def split_time(first, then, then_high):
         # the steps either side of where the join's held error changes sign: joined(start) is
         # `then` alone, above target where then_high (K,), joined(end) `first` alone
@@ -467,17 +472,14 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
                                    (start, end))
         return joined(t0, first, then), joined(t1, first, then)
 
-    # discharge first, then charge; and charge first, then discharge
-    ja_high, jb_high = held_err(ja) > 0, held_err(jb) > 0
-    cands = jnp.stack([shifted(a), shifted(b), *split_time(jb, ja, ja_high),
-                       *split_time(ja, jb, jb_high)])  # (6, T)
-
-    def score(lam_t):  # per piece: held error, and the energy the limits hold on the way
-        dE = plan_dE(lam_t)
-        e = held_piece_error(vp, dE, pid, target)
-        return e, jnp.abs(e - piece_error(dE, pid, target))
-
-    errs, held = jax.lax.map(score, cands)  # (6, K), one DP at a time (memory)
+    # the side whose plan alone the limits hold less goes first (per piece)
+    (e_a, h_a), (e_b, h_b) = score(ja), score(jb)
+    charge_first = h_b > h_a
+    first = jnp.where(charge_first[pid], ja, jb)
+    then = jnp.where(charge_first[pid], jb, ja)
+    then_high = jnp.where(charge_first, e_b, e_a) > 0
+    cands = jnp.stack([shifted(a), shifted(b), *split_time(first, then, then_high)])  # (4, T)
+    errs, held = jax.lax.map(score, cands)  # (4, K), one DP at a time (memory)
     near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
     best = jnp.argmin(jnp.where(near, held + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
     lam_t = cands[best[pid], k]
