@@ -473,7 +473,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         return joined(t0, first, then), joined(t1, first, then)
 
     # the side whose plan alone the limits hold less goes first (per piece)
-    (e_a, h_a), (e_b, h_b) = score(ja), score(jb)
+    (e_a, e_b), (h_a, h_b) = jax.lax.map(score, jnp.stack([ja, jb]))  # one DP at a time
     charge_first = h_b > h_a
     first = jnp.where(charge_first[pid], ja, jb)
     then = jnp.where(charge_first[pid], jb, ja)
