@@ -435,9 +435,6 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
         return piece_error(plan_dE(lam_t), pid, target)
 
-    def held_err(lam_t):  # (K,) the same within the battery's limits, as the plant holds them
-        return held_piece_error(vp, plan_dE(lam_t), pid, target)
-
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
 
@@ -454,7 +451,8 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def joined(ts, first, then):  # ts: (K,) the step of each piece where `then` takes over
         return jnp.where(k < ts[pid], first, then)
 
-    def score(lam_t):  # per piece: held error, and the energy the limits hold on the way
+    def score(lam_t):  # (K,) each: the plan's piece error within the battery's limits, as
+        # the plant holds them, and the energy the limits hold on the way
         dE = plan_dE(lam_t)
         e = held_piece_error(vp, dE, pid, target)
         return e, jnp.abs(e - piece_error(dE, pid, target))
@@ -465,7 +463,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         def bis_t(_, c):
             t0, t1 = c
             m = (t0 + t1) // 2
-            on = (held_err(joined(m, first, then)) > 0) == then_high
+            on = (score(joined(m, first, then))[0] > 0) == then_high
             return jnp.where(on, m, t0), jnp.where(on, t1, m)
 
         t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t,
