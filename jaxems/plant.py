@@ -296,7 +296,6 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     j, frac = _ref_position(track, s0)
     v_ref_here = _ref_speed(track, j, frac)
     v_ref_next = _ref_speed(track, j + 1, frac)
-    v_tgt = v_ref_next
     grade = _interp_grade(track, s0)
     F0 = pt.road_load(vp, v0, grade)
 
@@ -312,7 +311,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # never below Level 3's crawl speed short of a stop or the end (a reference that rounds to
     # zero just before a stop must not leave the truck standing there)
     d_left = jnp.minimum(d_stop, jnp.maximum(track.length - s0, 0.0))
-    v_tgt = jnp.where(standing, 0.0, jnp.maximum(v_tgt, jnp.minimum(V_CRAWL, d_left / dt)))
+    v_tgt = jnp.where(standing, 0.0, jnp.maximum(v_ref_next, jnp.minimum(V_CRAWL, d_left / dt)))
     v_cap = jnp.maximum(2.0 * d_stop / dt - v0, 0.0)
     v1_tgt = jnp.minimum(jnp.minimum(v_tgt, v0 + vp.a_max * dt), v_cap)
     ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)

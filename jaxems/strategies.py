@@ -448,35 +448,30 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
     end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
 
-    def joined(ts, first, then):  # ts: (K,) the step of each piece where `then` takes over
-        return jnp.where(k < ts[pid], first, then)
-
     def score(lam_t):  # (K,) each: the plan's piece error within the battery's limits, as
         # the plant holds them, and the energy the limits hold on the way
         dE = plan_dE(lam_t)
         e = held_piece_error(vp, dE, pid, target)
         return e, jnp.abs(e - piece_error(dE, pid, target))
 
-    def split_time(first, then, then_high):
-        # the steps either side of where the join's held error changes sign: joined(start) is
-        # `then` alone, above target where then_high (K,), joined(end) `first` alone
-        def bis_t(_, c):
-            t0, t1 = c
-            m = (t0 + t1) // 2
-            on = (score(joined(m, first, then))[0] > 0) == then_high
-            return jnp.where(on, m, t0), jnp.where(on, t1, m)
-
-        t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t,
-                                   (start, end))
-        return joined(t0, first, then), joined(t1, first, then)
-
     # the side whose plan alone the limits hold less goes first (per piece)
     (e_a, e_b), (h_a, h_b) = jax.lax.map(score, jnp.stack([ja, jb]))  # one DP at a time
     charge_first = h_b > h_a
     first = jnp.where(charge_first[pid], ja, jb)
     then = jnp.where(charge_first[pid], jb, ja)
-    then_high = jnp.where(charge_first, e_b, e_a) > 0
-    cands = jnp.stack([shifted(a), shifted(b), *split_time(first, then, then_high)])  # (4, T)
+    then_high = jnp.where(charge_first, e_b, e_a) > 0  # (K,) the held error of `then` alone
+
+    def joined(ts):  # ts: (K,) the step of each piece where `then` takes over from `first`
+        return jnp.where(k < ts[pid], first, then)
+
+    def bis_t(_, c):  # joined(start) is `then` alone, joined(end) `first` alone
+        t0, t1 = c
+        m = (t0 + t1) // 2
+        on = (score(joined(m))[0] > 0) == then_high
+        return jnp.where(on, m, t0), jnp.where(on, t1, m)
+
+    t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
+    cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
     errs, held = jax.lax.map(score, cands)  # (4, K), one DP at a time (memory)
     near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
     best = jnp.argmin(jnp.where(near, held + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
