@@ -7,7 +7,10 @@
   equivalent-consumption minimisation (A-ECMS). At every step it minimises the Hamiltonian of
   the *current* demand plus the switching cost from the current state (a one-step DP, no
   knowledge of the road ahead), with lambda_b from state-of-charge feedback,
-  lambda_b = lambda0 + k_p (E_b / E_b_max - soc_ref), clipped to [-6, -0.3].
+  lambda_b = lambda0 + k_p ((E_b + k_e m v^2 / 2) / E_b_max - soc_ref), clipped to [-6, -0.3]:
+  the feedback counts the share k_e of the kinetic energy that braking will return, so the
+  battery keeps room for it while the truck is fast (a speed-dependent charge reference; it
+  needs the measured speed only).
 - ``multilevel``: the iteration scheme of section 3.3: Level 3 -> Level 2 -> Level 1 over the
   full horizon, `n_iter` times, omega (engine speed) and lambda_b fed back; iteration 0 starts
   from a constant engine speed (vehicle's ``prediction_engine_speed_rpm``, 1100 rpm as in
@@ -74,23 +77,24 @@ class Options(NamedTuple):
     """Static options of the strategies (hashable; a change recompiles).
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
-    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, dwell:
-    baseline A-ECMS (dwell: least steps between its switches); dp_n_E: E_b grid points of
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share, dwell:
+    baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
+    battery already; dwell: least steps between its switches); dp_n_E: E_b grid points of
     dp-bound; dp_lams: number of costate values whose Level 1 splits are dp-bound's
     battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from E_b(t0) in
     dp-bound's terminal cost; plant_extra: plant steps beyond Level 3's (slack for switching
     delays, as a fraction; at least 256 steps); sustain: make each multilevel Level 1 plan
-    charge sustaining on its own model (`sustaining_level1`); guard_sides: Level 1 follows
-    Level 2's I2b sides at guards (`guard_lambda`); l2_pieces: the most pieces of Level 2's
+    charge sustaining on its own model (`sustaining_level1`); guard_sides: Level 1 follows Level
+    2's I2b sides at guards (`guard_lambda`); l2_pieces: the most pieces of Level 2's
     piecewise-constant costate (I1); tau_E: time constant (s) of the plant's battery-power
-    feedback on the deviation from a plan's battery energy; same_open_time: every vehicle
-    has dt_M == dt_G, so Level 1 takes the fast relaxation without a runtime branch (set by
-    `simulate` and `simulate_batch` from the vehicles; None: decided at run time);
-    eco_lambda_t: multilevel-eco's price of a second (J/s; None: found so that the trip takes
-    eco_time_ratio times Level 3's trip time, a ratio in [1, 1.5]); eco_overspeed_kmh: how far
-    above the cruise speed v0 eco-driving may go where the route allows v0 (km/h, 0 to 15;
-    `velocity.speed_bounds`; 0: never faster than Level 3, which then leaves no freedom at
-    Level 3's trip time).
+    feedback on the deviation from a plan's battery energy; same_open_time: every vehicle has
+    dt_M == dt_G, so Level 1 takes the fast relaxation without a runtime branch (set by
+    `simulate` and `simulate_batch` from the vehicles; None: decided at run time); eco_lambda_t:
+    multilevel-eco's price of a second (J/s; None: found so that the trip takes eco_time_ratio
+    times Level 3's trip time, a ratio in [1, 1.5]); eco_overspeed_kmh: how far above the cruise
+    speed v0 eco-driving may go where the route allows v0 (km/h, 0 to 15;
+    `velocity.speed_bounds`; 0: never faster than Level 3, which then leaves no freedom at Level
+    3's trip time).
     """
 
     n_iter: int = 2
@@ -98,8 +102,9 @@ class Options(NamedTuple):
     h2: int = 1000
     t2: int = 1
     lam0: float = -2.2
-    kp: float = 2.0
+    kp: float = 5.0
     soc_ref: float = 0.5
+    ke_share: float = 0.15
     dwell: int = 3
     dp_n_E: int = 101
     dp_lams: int = 24
@@ -560,13 +565,14 @@ class EcmsParams(NamedTuple):
     lam0: Any
     kp: Any
     soc_ref: Any
+    ke_share: Any
     dwell: Any  # steps
     switch: sw.SwitchCostParams
 
 
-def ecms_lambda(p: EcmsParams, vp, E_b):
-    """A-ECMS costate from state-of-charge feedback (no preview)."""
-    soc = E_b / vp.E_b_max
+def ecms_lambda(p: EcmsParams, vp, E_b, v):
+    """A-ECMS costate from charge feedback (no preview): E_b (J) and the speed v (m/s) now."""
+    soc = (E_b + p.ke_share * 0.5 * vp.mass * v**2) / vp.E_b_max
     return jnp.clip(p.lam0 + p.kp * (soc - p.soc_ref), l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])
 
 
@@ -575,7 +581,7 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     with a minimum dwell time between switches (as shift logic has), unless the current state
     cannot serve (the plant's protection then switches anyway)."""
     since = cstate  # steps since the last switch
-    lam = ecms_lambda(p, vp, obs.E_b)
+    lam = ecms_lambda(p, vp, obs.E_b, obs.v)
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
     n_g = vp.gear_ratio.shape[-1]
     s_cur = obs.mode * n_g + obs.gear
@@ -592,12 +598,13 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
 def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
-                   soc_ref=jnp.asarray(opts.soc_ref), dwell=jnp.asarray(opts.dwell),
+                   soc_ref=jnp.asarray(opts.soc_ref),
+                   ke_share=jnp.asarray(opts.ke_share), dwell=jnp.asarray(opts.dwell),
                    switch=params)
     track = pl.make_track(route, pred)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
-    lam_first = ecms_lambda(p, vp, vp.soc0 * vp.E_b_max)
+    lam_first = res.trace.lam[0]
     return Run(_metrics(res, pred, vp, lam_first, OK), res, pred, None)
 
 
@@ -1115,8 +1122,9 @@ def _check_options(o: Options):
                                            and o.eco_lambda_t >= 0):
         raise ValueError(f"eco_lambda_t: must be a price of time >= 0 J/s or None (got "
                          f"{o.eco_lambda_t!r})")
-    if not (0 <= o.soc_ref <= 1):
-        raise ValueError(f"soc_ref: must be in [0, 1] (got {o.soc_ref})")
+    for k in ("soc_ref", "ke_share"):
+        if not (0 <= getattr(o, k) <= 1):
+            raise ValueError(f"{k}: must be in [0, 1] (got {getattr(o, k)})")
     if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0
             and o.tau_E > 0):
         raise ValueError("lam0 < 0, kp >= 0, dp_penalty > 0, plant_extra >= 0 and tau_E > 0 "
