@@ -17,7 +17,8 @@
   Appendix D). Each iteration's decisions are run on the plant; the last one is the result.
 - ``multilevel-mpc``: the MPC scheme of section 3.4 inside the plant loop: Level 2 on a window
   of `h2` samples re-solved every `t2` samples from the measured battery energy (I3 where the
-  window ends before the route, charge sustaining where it reaches the end), Level 1 as a DP
+  window ends before the route, charge sustaining within the battery's limits where it reaches
+  the end; omega at 1100 rpm except on steady descents, `mpc_omega`), Level 1 as a DP
   over `h1` samples from the measured mode and gear, applying the first decision. Level 3 is
   indexed by position: re-planning it from the measured position over a 1000 s window gives the
   same reference as the full-route profile restricted to the window (the forward/backward
@@ -723,7 +724,7 @@ class MpcParams(NamedTuple):
     switch: sw.SwitchCostParams
 
 
-def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24):
+def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24, pieces: int = 8):
     def ctrl(p: MpcParams, cstate, vp, obs: pl.Obs):
         lam_prev, k_last = cstate
         j = obs.j
@@ -731,10 +732,11 @@ def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24):
         covers_end = j + h2 > p.end
         args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
 
-        def to_end():  # the window reaches the route's end: charge sustaining there; at a
-            # guard, the side of Level 2's I2b sequence now (as `guard_lambda` for the iteration)
+        def to_end():  # the window reaches the route's end: charge sustaining there, within
+            # the battery's limits (I1, up to `pieces` pieces: the first piece's costate is
+            # applied); at a guard, the side of Level 2's I2b sequence now (as `guard_lambda`)
             c2 = l2.costate_kernel(vp, *args, E_b0=obs.E_b, E_b_end=p.E_target,
-                                   n_iter=l2_iter, max_pieces=1)
+                                   n_iter=l2_iter, max_pieces=pieces)
             return guard_lambda(c2, 1e-3 * vp.E_b_max)[0]
 
         def limited():  # I3: the largest distance to the battery limits over the window
@@ -760,6 +762,29 @@ def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24):
     return ctrl
 
 
+STEADY_ACCEL = 0.05  # m/s^2: below this the reference holds its speed (a descent's braking)
+
+
+def mpc_omega(vp, pred: l3.Prediction, dt):
+    """Level 2's engine-speed estimate omega for the MPC: (T,) rad/s.
+
+    The MPC does not iterate, so no Level 1 gear is fed back. Its estimate is the constant
+    1100 rpm of iteration 0, except where the reference brakes at a steady speed (a descent):
+    there Level 1 holds the gear that recuperates most, and omega is that gear's shaft speed.
+    At 1100 rpm Level 2 takes a high gear that limits the motor's recuperation (short track,
+    last descent: 63 against 88 kW), so it under-predicts what the descent returns. In
+    decelerations Level 1 shifts down through the gears, so 1100 rpm stays there.
+    """
+    w = jnp.full_like(pred.v, vp.w_pred)
+    sp = jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None))(vp, pred.P_d, pred.v, -2.0)
+    Pb = jnp.min(jnp.where(sp.feasible, sp.P_b, jnp.inf), axis=1)  # (T, G) over the modes
+    g = jnp.argmin(Pb, axis=-1)
+    w_g = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), g[:, None], axis=-1)[:, 0]
+    a = jnp.abs(jnp.diff(pred.v, append=pred.v[-1:])) / dt
+    descent = (pred.P_d < 0) & (a < STEADY_ACCEL) & jnp.isfinite(jnp.min(Pb, axis=-1))
+    return jnp.where(descent, w_g, w)
+
+
 def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     h = max(opts.h1 + 1, opts.h2)
@@ -768,7 +793,7 @@ def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Ru
     E0 = vp.soc0 * vp.E_b_max
     p = MpcParams(P_d=padf(pred.P_d), v=padf(pred.v), grade=padf(pred.grade),
                   mask=jnp.concatenate([pred.mask, jnp.zeros(h, bool)]),
-                  w=jnp.full((n_steps + h,), vp.w_pred, pred.v.dtype), end=end, E_target=E0,
+                  w=padf(mpc_omega(vp, pred, dt)), end=end, E_target=E0,
                   dt=jnp.asarray(dt, pred.v.dtype), switch=params)
     track = pl.make_track(route, pred)
     ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2)
