@@ -18,9 +18,10 @@ Nothing lost. Every finished chunk is written to ``DIR/chunks/<chunk id>.parquet
 (temporary file, fsync, rename). Chunk ids are deterministic (route index and name, strategy,
 chunk index), so a rerun into the same directory (or ``--resume``) computes only the chunks
 without a file. ``DIR/sweep.json`` holds the canonical sweep (parsed settings, route and
-vehicle content hashes) and its fingerprint; a different sweep in the same directory is
-refused. At the end the chunks are merged into ``DIR/results.parquet`` (see `load_sweep`) and
-the report is written (`jaxems.report`).
+vehicle content hashes, the hash of jaxems's own code) and its fingerprint; a different sweep,
+or the same one by other code, in the same directory is refused. At the end the chunks are
+merged into ``DIR/results.parquet`` (see `load_sweep`) and the report is written
+(`jaxems.report`).
 
 Distributed. The default runs in-process. ``--workers N`` starts a local Dask cluster of N
 single-threaded worker processes; ``--scheduler tcp://HOST:PORT`` sends the chunks to a running
@@ -37,6 +38,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import glob
 import hashlib
 import itertools
@@ -44,6 +46,7 @@ import json
 import math
 import os
 import re
+import shutil
 import sys
 import threading
 import time
@@ -159,6 +162,7 @@ class SweepConfig:
             "ds_m": self.ds,
             "precision": self.precision,
             "options": self.options,
+            "code": code_sha256(),
         }
 
     def fingerprint(self) -> str:
@@ -168,6 +172,18 @@ class SweepConfig:
 
 def _sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def code_sha256() -> str:
+    """Content hash of jaxems's own source (every ``.py`` file of the package, by relative
+    path): results computed by other code are not mixed into a sweep (an upgrade, or an edit
+    of a development install, changes it)."""
+    root = Path(__file__).resolve().parent
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def grid_field(key: str) -> tuple[str, float, str]:
@@ -608,6 +624,8 @@ def _describe_change(old: dict, new: dict) -> str:
                 [f"removed {', '.join(gone)}"] if gone else []) + (
                 [f"file content changed: {', '.join(changed)}"] if changed else [])
             parts.append(f"routes ({'; '.join(bits) or 'order changed'})")
+        elif k == "code":
+            parts.append("code (computed by another version of jaxems)")
         else:
             parts.append(k)
     return ", ".join(parts)
@@ -1010,9 +1028,27 @@ def run_demo(out: str | Path = "out/demo", workers: int | None = 2, quiet: bool 
     writes the report and prints the summary."""
     out = Path(out)
     print(f"jaxems demo sweep: report will be at {out / 'report.html'}", flush=True)
+    _set_aside_if_other(load_config(sweep_file), out)
     summary = run_sweep(sweep_file, out, workers=workers, quiet=quiet)
     print(summary.text(), flush=True)
     return summary
+
+
+def _set_aside_if_other(cfg: SweepConfig, out: Path) -> None:
+    """The demo's own directory holding another sweep's results (an earlier jaxems, an edited
+    demo file) is moved to ``<out>.stale`` (replacing an older one), so the demo starts over."""
+    try:
+        meta = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return  # nothing recorded (or unreadable: prepare_dir names it)
+    if meta.get("fingerprint") == cfg.fingerprint():
+        return
+    stale = out.with_name(out.name + ".stale")
+    shutil.rmtree(stale, ignore_errors=True)
+    out.rename(stale)
+    what = _describe_change(meta.get("canonical", {}), cfg.canonical())
+    print(f"jaxems demo sweep: {out} held another sweep's results (changed: {what}); moved "
+          f"to {stale}, starting over", flush=True)
 
 
 # -------------------------------------------------------------------------------------- CLI

@@ -127,6 +127,26 @@ def test_changed_sweep_in_existing_directory_is_refused(tmp_path):
         sw.prepare_dir(changed, tmp_path / "fresh", resume=True)
 
 
+def test_results_of_other_code_are_refused_and_the_demo_starts_over(tmp_path, monkeypatch,
+                                                                      capsys):
+    cfg = sw.load_config(write(tmp_path, GOOD))
+    out = tmp_path / "out"
+    sw.prepare_dir(cfg, out)
+    (out / "chunks" / "x.parquet").write_bytes(b"old")
+    sw._set_aside_if_other(cfg, out)  # the same sweep by the same code: kept
+    assert (out / "chunks" / "x.parquet").exists() and capsys.readouterr().out == ""
+    assert len(sw.code_sha256()) == 64
+    monkeypatch.setattr(sw, "code_sha256", lambda: "0" * 64)  # jaxems changed since
+    with pytest.raises(sw.SweepError, match=r"different sweep \(changed: code \(computed by "
+                                            r"another version of jaxems\)"):
+        sw.prepare_dir(cfg, out)
+    sw._set_aside_if_other(cfg, out)
+    assert "moved to" in capsys.readouterr().out and not out.exists()
+    assert (tmp_path / "out.stale" / "chunks" / "x.parquet").read_bytes() == b"old"
+    sw.prepare_dir(cfg, out)  # starts over
+    assert list((out / "chunks").iterdir()) == []
+
+
 def test_grid_keys_map_to_si_fields():
     base = load_vehicle()
     pts = [{"mass_kg": 25000.0, "battery_MJ": 3.0, "motor_power_kW": 100.0,
