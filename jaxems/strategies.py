@@ -95,7 +95,9 @@ class Options(NamedTuple):
     times Level 3's trip time, a ratio in [1, 1.5]); eco_overspeed_kmh: how far above the cruise
     speed v0 eco-driving may go where the route allows v0 (km/h, 0 to 15;
     `velocity.speed_bounds`; 0: never faster than Level 3, which then leaves no freedom at Level
-    3's trip time).
+    3's trip time); mpc_pieces: the most pieces of the MPC's Level 2 where its window reaches
+    the route's end (I1 within the battery's limits; 1: plain bisection, cheaper in a batch,
+    where vmap evaluates both branches of the controller's every step).
     """
 
     n_iter: int = 2
@@ -119,6 +121,7 @@ class Options(NamedTuple):
     eco_lambda_t: float | None = None
     eco_time_ratio: float = 1.0
     eco_overspeed_kmh: float = 5.0
+    mpc_pieces: int = 8
 
 
 class Metrics(NamedTuple):
@@ -724,7 +727,7 @@ class MpcParams(NamedTuple):
     switch: sw.SwitchCostParams
 
 
-def _mpc_controller(h1: int, h2: int, t2: int, l2_iter: int = 24, pieces: int = 8):
+def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
     def ctrl(p: MpcParams, cstate, vp, obs: pl.Obs):
         lam_prev, k_last = cstate
         j = obs.j
@@ -796,7 +799,7 @@ def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Ru
                   w=padf(mpc_omega(vp, pred, dt)), end=end, E_target=E0,
                   dt=jnp.asarray(dt, pred.v.dtype), switch=params)
     track = pl.make_track(route, pred)
-    ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2)
+    ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)
     c0 = (jnp.asarray(opts.lam0, pred.v.dtype), jnp.asarray(-10**6, jnp.int32))
     m0, g0 = _first_state(vp, pred, opts.lam0)
     res = pl.run_plant(vp, track, ctrl, p, c0, m0, g0, plant_steps(n_steps, opts), dt)
@@ -1132,7 +1135,7 @@ def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
 
 def _check_options(o: Options):
     ints = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
-            "l2_pieces": 1}
+            "l2_pieces": 1, "mpc_pieces": 1}
     for k, lo in ints.items():
         v = getattr(o, k)
         if not (isinstance(v, int) and v >= lo):

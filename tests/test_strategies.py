@@ -193,6 +193,8 @@ def test_bad_options_are_clear_errors():
         S.simulate("short_track", VP, "baseline", battery_MJ=0.0)
     with pytest.raises(ValueError, match="n_iter"):
         S.simulate("short_track", VP, "multilevel", n_iter=0)
+    with pytest.raises(ValueError, match="mpc_pieces"):
+        S.simulate("short_track", VP, "multilevel-mpc", mpc_pieces=0)
     with pytest.raises(ValueError, match="ke_share"):
         S.simulate("short_track", VP, "baseline", ke_share=1.5)
     with pytest.raises(ValueError, match="unknown option"):
