@@ -7,6 +7,7 @@ tolerances are the ones the implementation reaches on this track (see the README
 with the paper), stated per test.
 """
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -123,21 +124,23 @@ def test_ecms_feedback_counts_the_kinetic_energy(E, v, ke, kp):
 
 def test_mpc_omega_is_the_recuperation_gear_on_steady_descents(runs):
     """Brute force over the gears on every step of the short track's prediction."""
-    from jaxems import powertrain as pt
     from jaxems.levels import powersplit as ps
 
     pred = runs["multilevel-mpc"].prediction
-    w = np.asarray(S.mpc_omega(VP, pred, 1.0))
+    w = np.asarray(jax.jit(S.mpc_omega)(VP, pred, 1.0))
     P_d, v = np.asarray(pred.P_d), np.asarray(pred.v)
+    # every step's (mode, gear) table at once; the rest is a loop over steps and gears
+    sp = jax.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))(VP, P_d, v, -2.0)
+    feasible, P_b = np.asarray(sp.feasible), np.asarray(sp.P_b)
     n_descent = n_more = 0
     for k in range(len(v)):
         a = abs(v[min(k + 1, len(v) - 1)] - v[k])
         if not (P_d[k] < 0 and a < S.STEADY_ACCEL):
             assert w[k] == pytest.approx(float(VP.w_pred)), k
             continue
-        sp = ps.mode_gear_split(VP, P_d[k], v[k], -2.0)
-        Pb = np.where(np.asarray(sp.feasible), np.asarray(sp.P_b), np.inf).min(axis=0)  # (G,)
-        speeds = np.asarray(pt.shaft_speeds(VP, v[k]))
+        Pb = np.array([min((P_b[k, m, g] for m in range(P_b.shape[1]) if feasible[k, m, g]),
+                           default=np.inf) for g in range(P_b.shape[2])])  # (G,)
+        speeds = np.asarray(VP.gear_ratio) * float(VP.r_d) * v[k]  # `shaft_speeds`
         g = int(np.argmin(np.abs(speeds - w[k])))
         assert w[k] == pytest.approx(speeds[g]) and Pb[g] == Pb.min(), k
         n_descent += 1
