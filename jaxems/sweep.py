@@ -631,6 +631,19 @@ def _describe_change(old: dict, new: dict) -> str:
     return ", ".join(parts)
 
 
+def _recorded_change(cfg: SweepConfig, out: Path) -> tuple[dict, str | None]:
+    """(the sweep record in `out`, what differs from `cfg`: None if it is this sweep);
+    `SweepError` if the record cannot be read."""
+    meta_path = out / CONFIG_FILE
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as e:
+        raise SweepError(f"{meta_path}: unreadable sweep record ({e})") from None
+    if meta.get("fingerprint") == cfg.fingerprint():
+        return meta, None
+    return meta, _describe_change(meta.get("canonical", {}), cfg.canonical())
+
+
 def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     """Create the results directory or check that it holds this very sweep.
 
@@ -638,15 +651,9 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     something that is not a jaxems sweep, or (``resume``) has nothing to resume.
     """
     meta_path = out / CONFIG_FILE
-    canon = cfg.canonical()
-    fp = cfg.fingerprint()
     if meta_path.exists():
-        try:
-            meta = json.loads(meta_path.read_text(encoding="utf-8"))
-        except (OSError, ValueError) as e:
-            raise SweepError(f"{meta_path}: unreadable sweep record ({e})") from None
-        if meta.get("fingerprint") != fp:
-            what = _describe_change(meta.get("canonical", {}), canon)
+        meta, what = _recorded_change(cfg, out)
+        if what is not None:
             raise SweepError(
                 f"{out} holds the results of a different sweep (changed: {what}; recorded from "
                 f"{meta.get('source', '?')}); refusing to mix them. Use another --out directory, "
@@ -660,7 +667,8 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
                          f"them; use another --out directory")
     (out / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
     _atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
-    meta = {"fingerprint": fp, "canonical": canon, "source": str(cfg.source),
+    meta = {"fingerprint": cfg.fingerprint(), "canonical": cfg.canonical(),
+            "source": str(cfg.source),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     _atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
 
@@ -1037,16 +1045,14 @@ def run_demo(out: str | Path = "out/demo", workers: int | None = 2, quiet: bool 
 def _set_aside_if_other(cfg: SweepConfig, out: Path) -> None:
     """The demo's own directory holding another sweep's results (an earlier jaxems, an edited
     demo file) is moved to ``<out>.stale`` (replacing an older one), so the demo starts over."""
-    try:
-        meta = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return  # nothing recorded (or unreadable: prepare_dir names it)
-    if meta.get("fingerprint") == cfg.fingerprint():
+    if not (out / CONFIG_FILE).exists():
+        return
+    _, what = _recorded_change(cfg, out)
+    if what is None:
         return
     stale = out.with_name(out.name + ".stale")
     shutil.rmtree(stale, ignore_errors=True)
     out.rename(stale)
-    what = _describe_change(meta.get("canonical", {}), cfg.canonical())
     print(f"jaxems demo sweep: {out} held another sweep's results (changed: {what}); moved "
           f"to {stale}, starting over", flush=True)
 
