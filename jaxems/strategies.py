@@ -768,24 +768,24 @@ def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
 STEADY_ACCEL = 0.05  # m/s^2: below this the reference holds its speed (a descent's braking)
 
 
-def mpc_omega(vp, pred: l3.Prediction, dt):
+def mpc_omega(vp, pred: l3.Prediction):
     """Level 2's engine-speed estimate omega for the MPC: (T,) rad/s.
 
     The MPC does not iterate, so no Level 1 gear is fed back. Its estimate is the constant
     1100 rpm of iteration 0, except where the reference brakes at a steady speed (a descent):
-    there Level 1 holds the gear that recuperates most, and omega is that gear's shaft speed.
+    there Level 1 holds the gear that recuperates most, and omega is that gear's shaft speed
+    (steady: the step's mean acceleration `pred.a` below STEADY_ACCEL).
     At 1100 rpm Level 2 takes a high gear that limits the motor's recuperation (short track,
     last descent: 63 against 88 kW), so it under-predicts what the descent returns. In
     decelerations Level 1 shifts down through the gears, so 1100 rpm stays there.
     """
-    w = jnp.full_like(pred.v, vp.w_pred)
     sp = jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None))(vp, pred.P_d, pred.v, -2.0)
     Pb = jnp.min(jnp.where(sp.feasible, sp.P_b, jnp.inf), axis=1)  # (T, G) over the modes
     g = jnp.argmin(Pb, axis=-1)
     w_g = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), g[:, None], axis=-1)[:, 0]
-    a = jnp.abs(jnp.diff(pred.v, append=pred.v[-1:])) / dt
-    descent = (pred.P_d < 0) & (a < STEADY_ACCEL) & jnp.isfinite(jnp.min(Pb, axis=-1))
-    return jnp.where(descent, w_g, w)
+    descent = ((pred.P_d < 0) & (jnp.abs(pred.a) < STEADY_ACCEL)
+               & jnp.isfinite(jnp.take_along_axis(Pb, g[:, None], axis=-1)[:, 0]))
+    return jnp.where(descent, w_g, vp.w_pred)
 
 
 def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
@@ -796,7 +796,7 @@ def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Ru
     E0 = vp.soc0 * vp.E_b_max
     p = MpcParams(P_d=padf(pred.P_d), v=padf(pred.v), grade=padf(pred.grade),
                   mask=jnp.concatenate([pred.mask, jnp.zeros(h, bool)]),
-                  w=padf(mpc_omega(vp, pred, dt)), end=end, E_target=E0,
+                  w=padf(mpc_omega(vp, pred)), end=end, E_target=E0,
                   dt=jnp.asarray(dt, pred.v.dtype), switch=params)
     track = pl.make_track(route, pred)
     ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)

@@ -127,15 +127,14 @@ def test_mpc_omega_is_the_recuperation_gear_on_steady_descents(runs):
     from jaxems.levels import powersplit as ps
 
     pred = runs["multilevel-mpc"].prediction
-    w = np.asarray(jax.jit(S.mpc_omega)(VP, pred, 1.0))
-    P_d, v = np.asarray(pred.P_d), np.asarray(pred.v)
+    w = np.asarray(jax.jit(S.mpc_omega)(VP, pred))
+    P_d, v, acc = np.asarray(pred.P_d), np.asarray(pred.v), np.asarray(pred.a)
     # every step's (mode, gear) table at once; the rest is a loop over steps and gears
     sp = jax.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))(VP, P_d, v, -2.0)
     feasible, P_b = np.asarray(sp.feasible), np.asarray(sp.P_b)
     n_descent = n_more = 0
     for k in range(len(v)):
-        a = abs(v[min(k + 1, len(v) - 1)] - v[k])
-        if not (P_d[k] < 0 and a < S.STEADY_ACCEL):
+        if not (P_d[k] < 0 and abs(acc[k]) < S.STEADY_ACCEL):
             assert w[k] == pytest.approx(float(VP.w_pred)), k
             continue
         Pb = np.array([min((P_b[k, m, g] for m in range(P_b.shape[1]) if feasible[k, m, g]),
