@@ -436,9 +436,10 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     T = pred.v.shape[0]
     k = jnp.arange(T)
     dtype = pred.v.dtype
+    trac = l1.traction_table(vp, pred.v, pred.grade, params)  # the same for every lambda_b
 
     def plan_dE(lam_t):  # (T,) the energy change of each step of Level 1's plan
-        r = _level1(vp, pred, lam_t, dt, params, fast)
+        r = _level1(vp, pred, lam_t, dt, params, fast, trac)
         return steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
 
     def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
@@ -485,7 +486,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
     best = jnp.argmin(jnp.where(near, held + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
     lam_t = cands[best[pid], k]
-    return _level1(vp, pred, lam_t, dt, params, fast), lam_t
+    return _level1(vp, pred, lam_t, dt, params, fast, trac), lam_t
 
 
 def _init_state(pred: l3.Prediction):
@@ -526,11 +527,12 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Met
     )
 
 
-def _level1(vp, pred, lam, dt, params, fast=None):
-    """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice)."""
+def _level1(vp, pred, lam, dt, params, fast=None, trac=None):
+    """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice; trac:
+    `level1.traction_table` of the prediction, if at hand)."""
     m0, g0 = _init_state(pred)
     return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
-                           fast)
+                           fast, trac)
 
 
 def _engine_speed_nodes(route, pred, w_steps):

@@ -38,7 +38,7 @@ with the batch on the last axis (see `jaxems.dp`). Array values never recompile.
 from __future__ import annotations
 
 import collections
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -53,6 +53,7 @@ from .powersplit import (
     MOTOR_CONNECTED,
     N_MODES,
     hamiltonian_table,
+    split_state,
 )
 
 TRACES: collections.Counter = collections.Counter()  # trace counts of the jitted entry points
@@ -133,11 +134,23 @@ def transition_consts(vp: VehicleParams, averaged) -> TransitionConsts:
     return TransitionConsts(W=vp.gear_ratio**2, a_lo=a_lo, b_lo=b_lo, a_hi=a_hi, b_hi=b_hi)
 
 
-def transition_inputs(vp: VehicleParams, v, grade, lam, params: sw.SwitchCostParams):
-    """`TransitionInputs` of one step (scalars v, grade, lam): scale () and trac (3, S)."""
+def transition_inputs(vp: VehicleParams, v, grade, lam, params: sw.SwitchCostParams,
+                      trac=None):
+    """`TransitionInputs` of one step (scalars v, grade, lam): scale () and trac (3, S).
+
+    trac: the step's `traction_table` if already at hand (it does not depend on lam)."""
     scale = -lam * (vp.r_d * v) ** 2 * params.weight
-    trac = sw.traction_cost_table(vp, v, grade, params) * params.weight
+    if trac is None:
+        trac = sw.traction_cost_table(vp, v, grade, params) * params.weight
     return TransitionInputs(scale=scale, trac=trac)
+
+
+def traction_table(vp: VehicleParams, v, grade, params: sw.SwitchCostParams):
+    """(T, 3, S) J: the weighted traction-interruption costs of every step (v, grade: (T,)).
+    They do not depend on lambda_b: a caller that solves Level 1 at many lambda_b on one
+    prediction computes them once (`_tables`' ``trac``)."""
+    f = jax.vmap(sw.traction_cost_table, in_axes=(None, 0, 0, None))
+    return f(vp, v, grade, params) * params.weight
 
 
 def _excl_scan(vals, reverse):
@@ -317,7 +330,7 @@ def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.S
 
 # --------------------------------------------------------------------------------- tables
 class _Tables(NamedTuple):
-    split: Any  # powersplit.Split (T, 4, G)
+    P_d: jax.Array  # (T,) W
     stage: jax.Array  # (T, S) J
     xs: TransitionInputs  # (T, ...)
     consts: TransitionConsts
@@ -327,19 +340,25 @@ class _Tables(NamedTuple):
     brake: jax.Array  # (T, 3, S) J, `braking_loss`
 
 
-def _tables(vp, P_d, v, grade, lam, dt, params) -> _Tables:
+def _tables(vp, P_d, v, grade, lam, dt, params, trac=None) -> _Tables:
+    """The DP's inputs; trac: `traction_table(vp, v, grade, params)` if already at hand.
+    Only the Hamiltonian H of the split table is kept (the path's split is evaluated again
+    along the path by `_result`: keeping every state's powers costs more than that)."""
     T = P_d.shape[0]
     lam = jnp.broadcast_to(jnp.asarray(lam, P_d.dtype), (T,))
-    split = hamiltonian_table(vp, P_d, v, lam)
-    H = split.H.reshape(T, -1)
+    H_table = hamiltonian_table(vp, P_d, v, lam).H
+    H = H_table.reshape(T, -1)
     none = ~jnp.any(jnp.isfinite(H), axis=1)
     stage = jnp.where(none[:, None], 0.0, H * dt)
-    xs = jax.vmap(transition_inputs, in_axes=(None, 0, 0, 0, None))(vp, v, grade, lam, params)
-    brake = jax.vmap(braking_loss, in_axes=(None, 0, 0, None))(vp, split.H, P_d, dt)
+    if trac is None:
+        trac = traction_table(vp, v, grade, params)
+    xs = jax.vmap(transition_inputs, in_axes=(None, 0, 0, 0, None, 0))(vp, v, grade, lam,
+                                                                       params, trac)
+    brake = jax.vmap(braking_loss, in_axes=(None, 0, 0, None))(vp, H_table, P_d, dt)
     xs = xs._replace(trac=xs.trac + params.weight * brake)
     consts = transition_consts(vp, params.averaged)
     dconsts = dense_consts(vp, params.averaged)
-    return _Tables(split, stage, xs, consts, dconsts, none, lam, brake)
+    return _Tables(P_d, stage, xs, consts, dconsts, none, lam, brake)
 
 
 def _init_cost(init_mode, init_gear, S, n_g, dtype):
@@ -349,17 +368,15 @@ def _init_cost(init_mode, init_gear, S, n_g, dtype):
 
 
 def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1Result:
-    T = path.shape[0]
     n_g = vp.gear_ratio.shape[-1]
-    k = jnp.arange(T)
     mode, gear = path // n_g, path % n_g
-    pick = lambda a: a[k, mode, gear]  # noqa: E731
+    sp = jax.vmap(split_state, in_axes=(None, 0, 0, 0, 0, 0))(vp, tb.P_d, v, tb.lam, mode, gear)
     prev = jnp.concatenate([start[None], path[:-1]])
     sc = jax.vmap(transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0))(
         vp, prev, path, v, grade, tb.lam, params, tb.brake
     )
     sc = jnp.where(mask, sc, 0.0)
-    Hk = pick(tb.split.H)
+    Hk = sp.H
     stage = jnp.where(tb.none_feasible, 0.0, Hk * dt)
     cost = jnp.sum(jnp.where(mask, stage, 0.0)) + jnp.sum(sc)
     mprev, gprev = prev // n_g, prev % n_g
@@ -368,13 +385,13 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
         mode=mode.astype(jnp.int32),
         gear=gear.astype(jnp.int32),
         state=path.astype(jnp.int32),
-        P_b=z(pick(tb.split.P_b)),
-        P_e=z(pick(tb.split.P_e)),
-        P_m=z(pick(tb.split.P_m)),
-        P_f=z(pick(tb.split.P_f)),
-        P_brake=z(pick(tb.split.P_brake)),
+        P_b=z(sp.P_b),
+        P_e=z(sp.P_e),
+        P_m=z(sp.P_m),
+        P_f=z(sp.P_f),
+        P_brake=z(sp.P_brake),
         H=z(Hk),
-        w=z(pick(tb.split.w)),
+        w=z(sp.w),
         switch_cost=sc,
         cost=cost,
         n_mode_switches=jnp.sum(mask & (mode != mprev)).astype(jnp.int32),
@@ -384,9 +401,10 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
 
 
 # ------------------------------------------------------------------------------ full horizon
-def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None):
+def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
+                 trac=None):
     TRACES["level1_full"] += 1
-    tb = _tables(vp, P_d, v, grade, lam, dt, params)
+    tb = _tables(vp, P_d, v, grade, lam, dt, params, trac)
     S = tb.stage.shape[1]
     n_g = S // N_MODES
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
@@ -601,6 +619,7 @@ __all__ = [
     "relax_structured",
     "solve_dp",
     "structured_transition",
+    "traction_table",
     "transition_consts",
     "transition_cost",
     "transition_inputs",
