@@ -128,8 +128,20 @@ def test_level1_full_equals_numpy_viterbi():
     np.testing.assert_allclose(float(r.cost), ref, rtol=1e-10)
     _check_result(r, vp, P_d, v, grade, lam, PRM, init_state)
     assert int(r.n_infeasible) == 0
+    # the path's split (evaluated along the path) is the table's at the chosen states
+    tab = _htab(vp, P_d, v, np.broadcast_to(lam, v.shape))
+    k, m, g = np.arange(len(v)), np.asarray(r.mode), np.asarray(r.gear)
+    for f in ("H", "P_b", "P_e", "P_m", "P_f", "P_brake", "w"):
+        np.testing.assert_allclose(np.asarray(getattr(r, f)), np.asarray(getattr(tab, f))[k, m, g],
+                                   rtol=1e-12, atol=1e-6, err_msg=f)
     # the paper's narrative: motor-only on the flat, engine on the climb
     assert int(r.mode[6]) == ps.MM and int(r.mode[10]) in (ps.MC, ps.ME)
+    # the traction table handed in (as the Level 1 that keeps Level 2's plan does) changes nothing
+    trac = l1.traction_table(vp, v, grade, PRM)
+    r2 = l1._level1_full_jit(vp, P_d, v, grade, lam, DT, np.ones(len(v), bool), ps.MO, 0, PRM,
+                             trac=trac)
+    for f in ("state", "P_b", "cost"):
+        np.testing.assert_array_equal(np.asarray(getattr(r2, f)), np.asarray(getattr(r, f)))
 
 
 def test_braking_loss_matches_a_loop():
