@@ -73,13 +73,13 @@ def plot(data: dict, out: Path) -> Path:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("json_file", nargs="?", default="docs/bench/scaling.json")
-    ap.add_argument("--out", default=None, help="PNG path (default: next to the JSON)")
+    ap.add_argument("--out", default=None, help="PNG path (default: the JSON's path with .png)")
     args = ap.parse_args(argv)
     src = Path(args.json_file)
     data = json.loads(src.read_text())
     if "scaling" not in data:
         ap.error(f"{src}: no 'scaling' entry (run bench_sweep.py --scaling --json)")
-    out = Path(args.out) if args.out else src.with_name("scaling.png")
+    out = Path(args.out) if args.out else src.with_suffix(".png")
     print(plot(data, out))
     return 0
 
