@@ -228,3 +228,5 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
         for k in ("fuel_J", "delta_Eb_J", "trip_time_s", "mode_switches", "gear_switches"):
             assert out[k][i] == pytest.approx(r[k], rel=1e-9, abs=1e-6), (i, k)
         assert out["status"][i] == "ok"
+    with pytest.raises(ValueError, match="chunk"):
+        S.simulate_batch(load_route("short_track"), stack_vehicles(vps), "baseline", chunk="big")
