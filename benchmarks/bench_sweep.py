@@ -25,7 +25,8 @@ Paths:
   opts)` (opts: `Options()` resolved for the vehicles as `simulate_batch` does) with the route
   and `SwitchCostParams()` shared, on `--devices` host devices (default: all cores;
   `use_host_devices` runs before JAX starts), `--chunk` configurations vmapped at once per
-  device. A comma list (`--devices 1,2`) measures each count in turn and reports
+  device (default: the strategy's own, `strategies.default_chunk`, as `simulate_batch` takes
+  it). A comma list (`--devices 1,2`) measures each count in turn and reports
   speedup_vs_1_device (wall-time ratio).
 - plain (`--plain`): `strategies.simulate_batch(..., chunk=None, devices=1)`, the whole batch
   in one vmap on one device (the path before sharding), in a process with one device.
@@ -160,6 +161,8 @@ def measure(spec: dict) -> dict:
     if spec["tile"] > 1:
         route = tile_route(route, spec["tile"])
     B, name = spec["batch"], spec["strategy"]
+    if spec["chunk"] is None:  # the strategy's default, as simulate_batch takes it
+        spec = {**spec, "chunk": st.default_chunk(name)}
     vps = vehicles(B, dtype)
     n_steps = st.steps_for_batch(route, vps)
 
@@ -328,8 +331,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--devices", default=str(os.cpu_count() or 1),
                     help="host devices for the sharded path, or a comma list to compare")
-    ap.add_argument("--chunk", type=int, default=64,
-                    help="most configurations vmapped at once per device")
+    ap.add_argument("--chunk", type=int, default=None,
+                    help="most configurations vmapped at once per device (default: each "
+                         "strategy's, strategies.default_chunk: 4 for multilevel, else 64)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--plain", action="store_true", help="time simulate_batch only")
     g.add_argument("--compare-plain", action="store_true",
@@ -350,7 +354,7 @@ def main(argv=None) -> int:
         args.devices_list = [int(x) for x in args.devices.split(",")]
     except ValueError:
         ap.error(f"--devices: whole numbers separated by commas (got {args.devices!r})")
-    if min(args.devices_list) < 1 or args.chunk < 1 or args.batch < 1:
+    if min(args.devices_list) < 1 or (args.chunk is not None and args.chunk < 1) or args.batch < 1:
         ap.error("--devices, --chunk and --batch must be >= 1")
     if args.in_process and len(set(args.devices_list)) > 1:
         ap.error("--in-process measures one device count (the backend starts once)")
