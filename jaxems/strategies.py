@@ -786,7 +786,7 @@ def mpc_omega(vp, pred: l3.Prediction):
     g = jnp.argmin(Pb, axis=-1)
     w_g = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), g[:, None], axis=-1)[:, 0]
     descent = ((pred.P_d < 0) & (jnp.abs(pred.a) < STEADY_ACCEL)
-               & jnp.isfinite(jnp.take_along_axis(Pb, g[:, None], axis=-1)[:, 0]))
+               & jnp.isfinite(jnp.min(Pb, axis=-1)))
     return jnp.where(descent, w_g, vp.w_pred)
 
 
