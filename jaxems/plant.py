@@ -58,7 +58,10 @@ class Track(NamedTuple):
     Level 3 time grid (ref_s non-decreasing; flat while standing). grid_s: (N,) node positions of
     the route's distance grid, grade: (N,) gradient (rise/run) from each node to the next.
     stop_s, stop_t: (N+1,) position (m) and duration (s) of the first stop at or after each node
-    (+inf / 0 where none follows). length: () route length (m).
+    (+inf / 0 where none follows). length: () route length (m). final_s: () position (m) from
+    which the reference needs no more traction to the route's end (its final braking or
+    coasting): from there the battery stores no more than the trip started with (+inf: no
+    such cap).
     """
 
     ref_s: Any
@@ -68,6 +71,7 @@ class Track(NamedTuple):
     stop_s: Any
     stop_t: Any
     length: Any
+    final_s: Any
 
 
 class Obs(NamedTuple):
@@ -397,7 +401,13 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     pb_hi = ps.pb_of_pm(vp, r, r.m_lim)
     E_avail = st.E_b - E_sync_b
     pb_hi = jnp.minimum(pb_hi, _pb_of_pbi(vp, E_avail / dt))
-    pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - vp.E_b_max) / dt))
+    # past the reference's last traction, charge sustaining is all the battery still serves:
+    # it stores up to the energy the trip started with (never forced to discharge), the
+    # service brakes take the rest
+    E_ceil = jnp.where(s0 >= track.final_s,
+                       jnp.maximum(vp.soc0 * vp.E_b_max, E_avail),
+                       vp.E_b_max)
+    pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - E_ceil) / dt))
     P_b = jnp.clip(P_b, jnp.minimum(pb_lo, pb_hi), pb_hi)
     P_m = ps.pm_of_pb(vp, r, P_b) * (traction > 0)
     P_b = jnp.where(traction > 0, P_b, 0.0)
@@ -460,8 +470,12 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     return (new, cparams, cstate), tr
 
 
-def make_track(route, pred) -> Track:
-    """The plant's `Track` from a `Route` and its Level 3 `Prediction` (one route)."""
+def make_track(route, pred, end_cap: bool = True) -> Track:
+    """The plant's `Track` from a `Route` and its Level 3 `Prediction` (one route).
+
+    end_cap (static): cap the battery's charge at its start energy from the reference's last
+    step of positive power demand on (`Track.final_s`); False: no cap (+inf).
+    """
     prof = pred.profile
     mask = pred.mask
     v_end = jnp.sum(jnp.where(prof.mask & ~jnp.concatenate([prof.mask[1:], jnp.zeros(1, bool)]),
@@ -484,8 +498,12 @@ def make_track(route, pred) -> Track:
     # the end of a route without a final stop: no stop; padding nodes lie beyond the end
     beyond = pred.length + 1.0 + jnp.arange(prof.s.shape[0])
     grid_s = jnp.where(jnp.asarray(route.mask), prof.s, beyond)
+    # the end of the reference's last step that needs traction (the start when none does)
+    pulls = mask & (pred.P_d > 0)
+    last = jnp.max(jnp.where(pulls, jnp.arange(mask.shape[0]) + 1, 0))
+    final_s = ref_s[last] if end_cap else jnp.asarray(jnp.inf, ref_s.dtype)
     return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
-                 stop_s=stop_s, stop_t=stop_t, length=pred.length)
+                 stop_s=stop_s, stop_t=stop_t, length=pred.length, final_s=final_s)
 
 
 def initial_state(vp: VehicleParams, track: Track, mode, gear, dtype=None) -> PlantState:

@@ -97,7 +97,10 @@ class Options(NamedTuple):
     `velocity.speed_bounds`; 0: never faster than Level 3, which then leaves no freedom at Level
     3's trip time); mpc_pieces: the most pieces of the MPC's Level 2 where its window reaches
     the route's end (I1 within the battery's limits; 1: plain bisection, cheaper in a batch,
-    where vmap evaluates both branches of the controller's every step).
+    where vmap evaluates both branches of the controller's every step); end_cap: from the
+    reference's last step of positive power demand to the route's end (its final braking), the
+    plant's battery stores no more than the trip started with and the service brakes take the
+    rest (`plant.Track.final_s`; False: it stores all it can).
     """
 
     n_iter: int = 2
@@ -122,6 +125,7 @@ class Options(NamedTuple):
     eco_time_ratio: float = 1.0
     eco_overspeed_kmh: float = 5.0
     mpc_pieces: int = 8
+    end_cap: bool = True
 
 
 class Metrics(NamedTuple):
@@ -502,9 +506,9 @@ def _first_state(vp, pred, lam):
     return jnp.where(standing, ps.MO, m), jnp.where(standing, 0, g)
 
 
-def _run_plan(route, vp, pred, plan: Plan, n_plant, dt):
+def _run_plan(route, vp, pred, plan: Plan, n_plant, dt, end_cap: bool):
     """Run a plan on the plant, starting in its first state (open driveline when standing)."""
-    track = pl.make_track(route, pred)
+    track = pl.make_track(route, pred, end_cap)
     standing = pred.v_ref[0] <= 0
     m0 = jnp.where(standing, ps.MO, plan.mode[0])
     g0 = jnp.where(standing, 0, plan.gear[0])
@@ -563,7 +567,7 @@ def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     lam = _lam_conventional(vpc)
     r1 = _level1(vpc, pred, lam, dt, params, opts.same_open_time)
     plan = make_plan(vpc, r1.mode, r1.gear, r1.P_b, lam, pred, dt, opts)
-    res = _run_plan(route, vpc, pred, plan, plant_steps(n_steps, opts), dt)
+    res = _run_plan(route, vpc, pred, plan, plant_steps(n_steps, opts), dt, opts.end_cap)
     return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
 
 
@@ -607,7 +611,7 @@ def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
                    soc_ref=jnp.asarray(opts.soc_ref),
                    ke_share=jnp.asarray(opts.ke_share), dwell=jnp.asarray(opts.dwell),
                    switch=params)
-    track = pl.make_track(route, pred)
+    track = pl.make_track(route, pred, opts.end_cap)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
     lam_first = res.trace.lam[0]
@@ -645,7 +649,7 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
         else:
             r1, lam1 = _level1(vp, pred, lam_g, dt, params, opts.same_open_time), lam_g
         plan = make_plan(vp, r1.mode, r1.gear, r1.P_b, lam1, pred, dt, opts, pieces)
-        res = _run_plan(route, vp, pred, plan, n_plant, dt)
+        res = _run_plan(route, vp, pred, plan, n_plant, dt, opts.end_cap)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
         # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
         # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
@@ -800,7 +804,7 @@ def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Ru
                   mask=jnp.concatenate([pred.mask, jnp.zeros(h, bool)]),
                   w=padf(mpc_omega(vp, pred)), end=end, E_target=E0,
                   dt=jnp.asarray(dt, pred.v.dtype), switch=params)
-    track = pl.make_track(route, pred)
+    track = pl.make_track(route, pred, opts.end_cap)
     ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)
     c0 = (jnp.asarray(opts.lam0, pred.v.dtype), jnp.asarray(-10**6, jnp.int32))
     m0, g0 = _first_state(vp, pred, opts.lam0)
@@ -920,7 +924,8 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         mode, gear = path // n_g, path % n_g
         pieces = (jnp.zeros(T, jnp.int32), jnp.reshape(goal - E0, (1,)).astype(dtype))
         plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts, pieces)
-        res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt)
+        res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt,
+                        opts.end_cap)
         # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
         i0, _, _ = _interp_grid(V_0, E0, dE, n_E)
         lam_dp = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE

@@ -245,3 +245,56 @@ def test_path_sync_energy_matches_a_loop():
         if m1 != m0 or (g1 != g0 and m1 != ps.MO):
             want[k] = float(P.sync_energy(VP, m0, g0, m1, g1, float(v[k]))) / float(VP.eta_m)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
+@jax.jit
+def run_uncapped(vp, lam):
+    track = P.make_track(ROUTE, PRED, end_cap=False)
+    return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
+
+
+def test_final_braking_starts_after_the_references_last_traction():
+    P_d, mask, s = (np.asarray(x) for x in (PRED.P_d, PRED.mask, PRED.s))
+    last = max(k for k in range(P_d.size) if mask[k] and P_d[k] > 0)
+    want = s[last + 1] if mask[last + 1] else float(PRED.length)
+    assert float(P.make_track(ROUTE, PRED).final_s) == pytest.approx(want, abs=1e-9)
+    assert np.isinf(float(P.make_track(ROUTE, PRED, end_cap=False).final_s))
+    # the route ends braking to a stop: the final braking is a stretch of it
+    assert 0.0 < want < float(PRED.length)
+
+
+@settings(max_examples=10)
+@given(mass=st.floats(12e3, 40e3), lam=st.floats(-4.5, -1.2), soc0=st.floats(0.2, 0.8))
+def test_final_braking_stores_no_more_than_the_trip_started_with(mass, lam, soc0):
+    vp = VP.replace(mass=mass, soc0=soc0)
+    capped, free = run(vp, lam), run_uncapped(vp, lam)
+    final_s = float(P.make_track(ROUTE, PRED).final_s)
+    E0 = soc0 * float(VP.E_b_max)
+    s = np.asarray(capped.trace.s)
+    E_c = np.append(np.asarray(capped.trace.E_b), float(capped.final.E_b))
+    E_f = np.append(np.asarray(free.trace.E_b), float(free.final.E_b))
+    before = np.append(s < final_s, False)
+    # the same run up to the final braking
+    np.testing.assert_array_equal(E_c[before], E_f[before])
+    # then no step ends above the start's energy or above where it began, whichever is higher
+    after = np.flatnonzero(~before[:-1])
+    assert after.size > 0
+    assert np.all(E_c[after + 1] <= np.maximum(E0, E_c[after]) * (1 + 1e-12) + 1e-6)
+    # below the start's energy it stores as without the cap (a switch's synchronisation may
+    # draw on it meanwhile, in both runs alike)
+    end_c, end_f = float(capped.final.E_b), float(free.final.E_b)
+    assert min(end_f, E0) - 1e-3 <= end_c <= end_f + 1e-3
+    # the service brakes take the rest, and the engine charges no more there either: no more
+    # fuel; the balance closes
+    assert float(capped.final.tot.fuel) <= float(free.final.tot.fuel)
+    assert float(capped.final.tot.loss_brake) >= float(free.final.tot.loss_brake) - 1e-6
+    assert rel_balance(capped, vp) < 1e-3
+
+
+def test_final_braking_cap_binds_on_the_reference_truck():
+    # the greedy controller arrives below the start's energy and its final braking would end
+    # above it: with the cap it ends exactly there
+    capped, free = run(VP, -2.2), run_uncapped(VP, -2.2)
+    E0 = float(VP.soc0 * VP.E_b_max)
+    assert float(free.final.E_b) > E0 + 1e3
+    assert float(capped.final.E_b) == pytest.approx(E0, abs=1.0)
