@@ -179,10 +179,18 @@ def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
 
 
 def all_ranges(vp: VehicleParams, v) -> Ranges:
-    """`Ranges` of every state (mode x gear, flattened: leaves (4 n_gears,)) at speed v."""
-    n_g = vp.gear_ratio.shape[-1]
-    s = jnp.arange(ps.N_MODES * n_g)
-    return jax.vmap(lambda m, g: state_ranges(vp, m, g, v))(s // n_g, s % n_g)
+    """`Ranges` of every state (mode x gear, flattened: leaves (4 n_gears,)) at speed v.
+
+    Mapped over gears inside modes (as `powersplit.mode_gear_split`), so that what depends on
+    the gear's speed alone (the capability curves) is evaluated once per gear, not per state.
+    """
+    w = pt.shaft_speeds(vp, v)  # (G,)
+    launch = jnp.arange(w.shape[-1]) == 0
+    per_gear = jax.vmap(ps.component_ranges, in_axes=(None, 0, None, None, 0))
+    per_mode = jax.vmap(per_gear, in_axes=(None, None, 0, 0, None))
+    r = per_mode(vp, w, jnp.asarray(ps.ENGINE_CONNECTED), jnp.asarray(ps.MOTOR_CONNECTED),
+                 launch)
+    return jax.tree.map(lambda x: x.reshape(-1), r)
 
 
 def capacity(r: Ranges):

@@ -298,3 +298,14 @@ def test_final_braking_cap_binds_on_the_reference_truck():
     E0 = float(VP.soc0 * VP.E_b_max)
     assert float(free.final.E_b) > E0 + 1e3
     assert float(capped.final.E_b) == pytest.approx(E0, abs=1.0)
+
+
+@pytest.mark.parametrize("v", [0.0, 0.4, 3.0, 15.0, 27.0])
+def test_all_ranges_equal_each_states_own(v):
+    got = P.all_ranges(VP, v)
+    n_g = VP.gear_ratio.shape[0]
+    for s in range(ps.N_MODES * n_g):
+        want = P.state_ranges(VP, s // n_g, s % n_g, v)
+        for name, a, b in zip(want._fields, got, want, strict=True):
+            assert float(a[s]) == float(b) or (np.isnan(float(a[s])) and np.isnan(float(b))), (
+                s, name)
