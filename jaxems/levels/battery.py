@@ -217,15 +217,20 @@ def _seg_cumsum(x, pid, bnd):
     return C[1:] - C[jnp.clip(bnd[:K], 0, T)][pid]
 
 
-def _switching(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pin, tol_v):
-    """Segmented I2b: the fewest switches per piece; see `minimal_switching`.
+class _Funnel(NamedTuple):
+    """I2b's funnel per step (T,): delta the increment gap of B+ over B-, first / last step of
+    each piece, [lo, hi] the X values from which the piece's end can still be reached; and
+    feasible (K,): every piece has a sequence within the limits."""
 
-    Returns (sel (T,), n_switches (K,), feasible (K,)). Per piece, X(k) = E_b(k) - E_start -
-    sum dE_minus (piece-local) is non-decreasing with increments in [0, delta_k]; the funnel
-    [lo, hi] of X values from which the piece's end value can still be reached is computed by
-    segmented reverse scans, then a greedy forward pass keeps the current trajectory as long as
-    the funnel allows.
-    """
+    delta: jax.Array
+    first: jax.Array
+    lo: jax.Array
+    hi: jax.Array
+    feasible: jax.Array
+
+
+def _funnel(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pin, tol_v):
+    """The parallel part of `_switching` (segmented scans): its `_Funnel`."""
     K = bnd.shape[0] - 1
     T = dE_plus.shape[0]
     k = jnp.arange(T)
@@ -240,6 +245,28 @@ def _switching(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pi
     lo = _seg_rev(L - Ck, last, jnp.maximum) + Ck
     bad = (lo > hi) | (first & ((lo - delta > 0.0) | (hi < 0.0)))
     feasible = ~(jax.ops.segment_max(bad.astype(jnp.int32), pid, num_segments=K) > 0)
+    return _Funnel(delta=delta, first=first, lo=lo, hi=hi, feasible=feasible)
+
+
+def _switching(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pin, tol_v):
+    """Segmented I2b: the fewest switches per piece; see `minimal_switching`.
+
+    Returns (sel (T,), n_switches (K,), feasible (K,)). Per piece, X(k) = E_b(k) - E_start -
+    sum dE_minus (piece-local) is non-decreasing with increments in [0, delta_k]; the funnel
+    [lo, hi] of X values from which the piece's end value can still be reached is computed by
+    segmented reverse scans (`_funnel`), then a greedy forward pass keeps the current
+    trajectory as long as the funnel allows (`_greedy`, a sequential scan).
+    """
+    f = _funnel(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pin, tol_v)
+    sel, n = _greedy(f, pid, bnd.shape[0] - 1)
+    return sel, n, f.feasible
+
+
+def _greedy(f: _Funnel, pid, K):
+    """I2b's greedy forward pass through the funnel, from either trajectory: (sel (T,),
+    n_switches (K,)) of the start with fewer switches (ties: B-)."""
+    delta, first, lo, hi = f.delta, f.first, f.lo, f.hi
+    k = jnp.arange(delta.shape[0])
 
     def run(p0):
         def step(c, i):
@@ -264,7 +291,7 @@ def _switching(dE_plus, dE_minus, pid, bnd, E_start, E_end, E_min, E_max, tol_pi
     sel0, n0 = run(jnp.int32(0))
     sel1, n1 = run(jnp.int32(1))
     use1 = n1 < n0
-    return jnp.where(use1[pid], sel1, sel0), jnp.where(use1, n1, n0), feasible
+    return jnp.where(use1[pid], sel1, sel0), jnp.where(use1, n1, n0)
 
 
 def _piece_paths(dE, pid, bnd, E_start, sat, E_max):
@@ -315,9 +342,7 @@ class _Pieces(NamedTuple):
     miss: jax.Array  # (K,) bool: a used piece whose path misses its end value by > tol
     over: jax.Array  # (T+1,) upper violation measure (see _solve_pieces)
     under: jax.Array  # (T+1,) lower violation measure
-    sel: jax.Array  # (T,) selector: I2b in free pieces with a sequence, else the I2a ratio
-    E_sel: jax.Array  # (T+1,) path along sel
-    n_switches: jax.Array  # (K,)
+    sw_ok: jax.Array  # (K,) bool: an I2b sequence within the limits exists (`_funnel`)
 
 
 def _solve_pieces(
@@ -397,20 +422,30 @@ def _solve_pieces(
     under = E_min - E
     # I2b: in free pieces a switching sequence between B+ and B- that stays within the limits
     # makes the piece solved, even where the constant I2a mix crosses a limit
-    sel_sw, n_sw, sw_ok = _switching(dE_lo, dE_hi, pid, bnd, E_start, tgt, E_min, E_max, tol_v,
-                                     tol_v)
+    # (its sequence itself, a sequential scan, only for the final pieces: `_i2b_selection`)
+    sw_ok = _funnel(dE_lo, dE_hi, pid, bnd, E_start, tgt, E_min, E_max, tol_v, tol_v).feasible
     fine = (~sat & sw_ok)[p_prev] & (j >= 1)
     over = jnp.where(fine, -jnp.inf, over)
     under = jnp.where(fine, -jnp.inf, under)
-    use_sw = (~sat & sw_ok)[pid]
-    sel = jnp.where(use_sw, sel_sw, r_plus[pid])
-    dE_sel = sel * dE_lo + (1 - sel) * dE_hi
-    E_sel, _, _ = _piece_paths(dE_sel, pid, bnd, E_start, sat, E_max)
     return _Pieces(
         lo=lo, hi=hi, r_plus=r_plus, sat=sat, jump=den > tol, dE_plus=dE_lo, dE_minus=dE_hi,
         Ef_plus=Ef_lo, Ef_minus=Ef_hi, E=E, pid=pid, miss=miss, over=over, under=under,
-        sel=sel, E_sel=E_sel, n_switches=jnp.where(~sat & sw_ok, n_sw, 0),
+        sw_ok=sw_ok,
     )
+
+
+def _i2b_selection(sol: _Pieces, bnd, E_bnd, E_min, E_max, tol_v):
+    """The selector of the solved pieces: I2b's sequence in free pieces that have one, else the
+    I2a ratio. Returns (sel (T,), E_sel (T+1,) the path along sel, n_switches (K,))."""
+    K = bnd.shape[0] - 1
+    E_start, tgt = E_bnd[:K], E_bnd[1:]
+    sel_sw, n_sw, _ = _switching(sol.dE_plus, sol.dE_minus, sol.pid, bnd, E_start, tgt, E_min,
+                                 E_max, tol_v, tol_v)
+    use = ~sol.sat & sol.sw_ok
+    sel = jnp.where(use[sol.pid], sel_sw, sol.r_plus[sol.pid])
+    dE_sel = sel * sol.dE_plus + (1 - sel) * sol.dE_minus
+    E_sel, _, _ = _piece_paths(dE_sel, sol.pid, bnd, E_start, sol.sat, E_max)
+    return sel, E_sel, jnp.where(use, n_sw, 0)
 
 
 # ------------------------------------------------------------------------------ public result
@@ -558,10 +593,10 @@ def _solve_core(
     status |= jnp.where(jnp.any(mask & ~ok), STEP_INFEASIBLE, 0)
     lam_p = 0.5 * (sol.lo + sol.hi)
     lam = lam_p[sol.pid]
-    sel = sol.sel
+    sel, E_sel, n_sw = _i2b_selection(sol, bnd, E_bnd, E_min, E_max, tol_v)
     E_f = sel * sol.Ef_plus + (1 - sel) * sol.Ef_minus
     return CostateResult(
-        lam=lam, lam0=lam[0], E_b=sol.E_sel, E_b_i2a=sol.E, n_switches=jnp.sum(sol.n_switches),
+        lam=lam, lam0=lam[0], E_b=E_sel, E_b_i2a=sol.E, n_switches=jnp.sum(n_sw),
         status=status, n_pieces=n_used(bnd), boundaries=bnd,
         E_bnd=E_bnd, lam_pieces=lam_p, lam_lo=sol.lo, lam_hi=sol.hi, r_plus=sol.r_plus,
         saturated=sol.sat & used, sel=sel, dE_plus=sol.dE_plus, dE_minus=sol.dE_minus,
