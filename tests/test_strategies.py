@@ -246,3 +246,24 @@ def test_final_braking_cap_sustains_the_baselines_charge_on_a_bundled_route():
     # the cap only withholds charge: the same fuel to the last traction, no more after it
     assert capped["fuel_J"] <= free["fuel_J"]
     assert capped["trip_time_s"] == free["trip_time_s"]
+
+
+def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
+    """The short track ends cruising (its last step pulls): no cap, no reserve. Regional
+    Delivery ends braking to a stop: with the cap the MPC's end target is the start plus
+    mpc_end_reserve of the battery, without it the start."""
+    from jaxems import plant as pl
+
+    vp = load_vehicle().replace(mass=20000.0)
+    size = float(vp.E_b_max)
+    E0 = float(vp.soc0) * size
+    for name, brakes_to_end in (("short_track", False), ("RegionalDelivery", True)):
+        route = load_route(name)
+        pred = S.level3(route, vp, 1.0, S.steps_for_batch(route, vp))
+        for cap in (True, False):
+            opts = S.Options(end_cap=cap, mpc_end_reserve=0.05)
+            track = pl.make_track(route, pred, cap)
+            want = E0 + (0.05 * size if cap and brakes_to_end else 0.0)
+            assert float(S.mpc_end_target(vp, track, opts)) == pytest.approx(want), (name, cap)
+    with pytest.raises(ValueError, match="mpc_end_reserve"):
+        S.simulate("short_track", vp, "multilevel-mpc", mpc_end_reserve=1.5)
