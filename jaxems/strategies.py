@@ -1190,6 +1190,8 @@ def _check_options(o: Options):
                                            and o.eco_lambda_t >= 0):
         raise ValueError(f"eco_lambda_t: must be a price of time >= 0 J/s or None (got "
                          f"{o.eco_lambda_t!r})")
+    if not isinstance(o.end_cap, bool):
+        raise ValueError(f"end_cap: must be True or False (got {o.end_cap!r})")
     for k in ("soc_ref", "ke_share", "mpc_end_reserve"):
         if not (0 <= getattr(o, k) <= 1):
             raise ValueError(f"{k}: must be in [0, 1] (got {getattr(o, k)})")

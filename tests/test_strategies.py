@@ -267,3 +267,5 @@ def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
             assert float(S.mpc_end_target(vp, track, opts)) == pytest.approx(want), (name, cap)
     with pytest.raises(ValueError, match="mpc_end_reserve"):
         S.simulate("short_track", vp, "multilevel-mpc", mpc_end_reserve=1.5)
+    with pytest.raises(ValueError, match="end_cap"):
+        S.simulate("short_track", vp, "baseline", end_cap="no")
