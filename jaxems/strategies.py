@@ -508,9 +508,9 @@ def _first_state(vp, pred, lam):
     return jnp.where(standing, ps.MO, m), jnp.where(standing, 0, g)
 
 
-def _run_plan(route, vp, pred, plan: Plan, n_plant, dt, end_cap: bool):
-    """Run a plan on the plant, starting in its first state (open driveline when standing)."""
-    track = pl.make_track(route, pred, end_cap)
+def _run_plan(vp, track: pl.Track, pred, plan: Plan, n_plant, dt):
+    """Run a plan on the plant (`track`: `plant.make_track` of the plan's prediction), starting
+    in its first state (open driveline when standing)."""
     standing = pred.v_ref[0] <= 0
     m0 = jnp.where(standing, ps.MO, plan.mode[0])
     g0 = jnp.where(standing, 0, plan.gear[0])
@@ -569,7 +569,8 @@ def run_conventional(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     lam = _lam_conventional(vpc)
     r1 = _level1(vpc, pred, lam, dt, params, opts.same_open_time)
     plan = make_plan(vpc, r1.mode, r1.gear, r1.P_b, lam, pred, dt, opts)
-    res = _run_plan(route, vpc, pred, plan, plant_steps(n_steps, opts), dt, opts.end_cap)
+    track = pl.make_track(route, pred, opts.end_cap)
+    res = _run_plan(vpc, track, pred, plan, plant_steps(n_steps, opts), dt)
     return Run(_metrics(res, pred, vpc, 0.0, OK), res, pred, r1)
 
 
@@ -651,7 +652,7 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
         else:
             r1, lam1 = _level1(vp, pred, lam_g, dt, params, opts.same_open_time), lam_g
         plan = make_plan(vp, r1.mode, r1.gear, r1.P_b, lam1, pred, dt, opts, pieces)
-        res = _run_plan(route, vp, pred, plan, n_plant, dt, opts.end_cap)
+        res = _run_plan(vp, pl.make_track(route, pred, opts.end_cap), pred, plan, n_plant, dt)
         it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
         # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
         # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
@@ -860,6 +861,7 @@ def _interp_grid(V, x, dE, n_E):
 
 def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
+    track = pl.make_track(route, pred, opts.end_cap)  # the same for every attempt
     dtype = pred.v.dtype
     n_E = opts.dp_n_E
     E_max = vp.E_b_max
@@ -939,8 +941,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         mode, gear = path // n_g, path % n_g
         pieces = (jnp.zeros(T, jnp.int32), jnp.reshape(goal - E0, (1,)).astype(dtype))
         plan = make_plan(vp, mode, gear, Pb_path, lam_path, pred, dt, opts, pieces)
-        res = _run_plan(route, vp, pred, plan, plant_steps(n_steps, opts), dt,
-                        opts.end_cap)
+        res = _run_plan(vp, track, pred, plan, plant_steps(n_steps, opts), dt)
         # the DP's costate at t0: slope of the value function at E_b(t0) in the first state
         i0, _, _ = _interp_grid(V_0, E0, dE, n_E)
         lam_dp = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE

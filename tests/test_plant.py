@@ -1,5 +1,7 @@
 """Plant: energy balance, stops, battery limits, open driveline, vmap == loop."""
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,9 +37,9 @@ def greedy(lam, cstate, vp, obs):
     return cstate, P.Command(mode=i // n, gear=i % n, lam=lam, P_b=jnp.nan)
 
 
-@jax.jit
-def run(vp, lam):
-    track = P.make_track(ROUTE, PRED)
+@partial(jax.jit, static_argnames="end_cap")
+def run(vp, lam, end_cap=True):
+    track = P.make_track(ROUTE, PRED, end_cap)
     return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
 
 
@@ -247,12 +249,6 @@ def test_path_sync_energy_matches_a_loop():
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
 
 
-@jax.jit
-def run_uncapped(vp, lam):
-    track = P.make_track(ROUTE, PRED, end_cap=False)
-    return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
-
-
 def test_final_braking_starts_after_the_references_last_traction():
     P_d, mask, s = (np.asarray(x) for x in (PRED.P_d, PRED.mask, PRED.s))
     last = max(k for k in range(P_d.size) if mask[k] and P_d[k] > 0)
@@ -267,7 +263,7 @@ def test_final_braking_starts_after_the_references_last_traction():
 @given(mass=st.floats(12e3, 40e3), lam=st.floats(-4.5, -1.2), soc0=st.floats(0.2, 0.8))
 def test_final_braking_stores_no_more_than_the_trip_started_with(mass, lam, soc0):
     vp = VP.replace(mass=mass, soc0=soc0)
-    capped, free = run(vp, lam), run_uncapped(vp, lam)
+    capped, free = run(vp, lam), run(vp, lam, end_cap=False)
     final_s = float(P.make_track(ROUTE, PRED).final_s)
     E0 = soc0 * float(VP.E_b_max)
     s = np.asarray(capped.trace.s)
@@ -294,7 +290,7 @@ def test_final_braking_stores_no_more_than_the_trip_started_with(mass, lam, soc0
 def test_final_braking_cap_binds_on_the_reference_truck():
     # the greedy controller arrives below the start's energy and its final braking would end
     # above it: with the cap it ends exactly there
-    capped, free = run(VP, -2.2), run_uncapped(VP, -2.2)
+    capped, free = run(VP, -2.2), run(VP, -2.2, end_cap=False)
     E0 = float(VP.soc0 * VP.E_b_max)
     assert float(free.final.E_b) > E0 + 1e3
     assert float(capped.final.E_b) == pytest.approx(E0, abs=1.0)
