@@ -45,7 +45,7 @@ import jax.numpy as jnp
 from . import powertrain as pt
 from . import switching as sw
 from .levels import powersplit as ps
-from .levels.velocity import V_CRAWL
+from .levels.velocity import V_CRAWL, node_rise
 from .params import VehicleParams
 
 MO = ps.MO
@@ -56,7 +56,8 @@ class Track(NamedTuple):
 
     ref_s, ref_v: (T+1,) planned position (m) and speed (m/s) at the step boundaries of the
     Level 3 time grid (ref_s non-decreasing; flat while standing). grid_s: (N,) node positions of
-    the route's distance grid, grade: (N,) gradient (rise/run) from each node to the next.
+    the route's distance grid, grade: (N,) gradient (rise/run) from each node to the next,
+    rise: (N,) height (m) of each node above the start (`velocity.node_rise`).
     stop_s, stop_t: (N+1,) position (m) and duration (s) of the first stop at or after each node
     (+inf / 0 where none follows). length: () route length (m). final_s: () position (m) from
     which the reference needs no more traction to the route's end (its final braking or
@@ -68,6 +69,7 @@ class Track(NamedTuple):
     ref_v: Any
     grid_s: Any
     grade: Any
+    rise: Any
     stop_s: Any
     stop_t: Any
     length: Any
@@ -85,7 +87,7 @@ class Obs(NamedTuple):
     E_b: Any  # battery energy (J)
     mode: Any  # active mode (int)
     gear: Any  # active gear index (int)
-    grade: Any  # measured road gradient at the current position (rise/run)
+    grade: Any  # mean road gradient over the distance the step is to cover (rise/run)
     P_req: Any  # power needed at the wheels to reach the target speed this step (W)
     v_op: Any  # speed at which the powertrain is evaluated this step (m/s)
 
@@ -268,9 +270,16 @@ def _stands(dwell, dt):
     return dwell > 0.5 * dt
 
 
-def _interp_grade(track: Track, s):
+def _mean_grade(track: Track, s, ds):
+    """Mean gradient over [s, s + ds] within the route, exact per cell (the gradient at s where
+    that stretch is shorter than 1 mm): the road work of a step does not depend on where its
+    start falls against the gradient's changes."""
+    s1 = jnp.minimum(s + ds, track.length)
+    d = s1 - s
+    h = jnp.interp(jnp.stack([s, s1]), track.grid_s, track.rise)
     i = jnp.clip(jnp.searchsorted(track.grid_s, s, side="right") - 1, 0, track.grade.shape[0] - 1)
-    return track.grade[i]
+    far = d > 1e-3
+    return jnp.where(far, (h[1] - h[0]) / jnp.where(far, d, 1.0), track.grade[i])
 
 
 def _ref_position(track: Track, s):
@@ -308,8 +317,6 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     j, frac = _ref_position(track, s0)
     v_ref_here = _ref_speed(track, j, frac)
     v_ref_next = _ref_speed(track, j + 1, frac)
-    grade = _interp_grade(track, s0)
-    F0 = pt.road_load(vp, v0, grade)
 
     # --- target: follow the reference, stop exactly at the next stop, stand for its duration
     N = track.grid_s.shape[0]
@@ -327,6 +334,10 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     v_cap = jnp.maximum(2.0 * d_stop / dt - v0, 0.0)
     v1_tgt = jnp.minimum(jnp.minimum(v_tgt, v0 + vp.a_max * dt), v_cap)
     ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)
+    # road load on the step's mean gradient, as Level 3 predicts it (the end of a step that is
+    # short of its target lies a little back on the same stretch)
+    grade = _mean_grade(track, s0, ds_tgt)
+    F0 = pt.road_load(vp, v0, grade)
     P_req = (0.5 * vp.mass * (v1_tgt**2 - v0**2) + F0 * ds_tgt) / dt
     # the powertrain runs at the step's start speed (at the mean target speed when launching)
     v_op = jnp.where(v0 > 0, v0, ds_tgt / dt)
@@ -511,6 +522,7 @@ def make_track(route, pred, end_cap: bool = True) -> Track:
     last = jnp.max(jnp.where(pulls, jnp.arange(mask.shape[0]) + 1, 0))
     final_s = ref_s[last] if end_cap else jnp.asarray(jnp.inf, ref_s.dtype)
     return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
+                 rise=node_rise(route, prof.s.dtype),
                  stop_s=stop_s, stop_t=stop_t, length=pred.length, final_s=final_s)
 
 

@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import plant as P
+from jaxems import reference as R
 from jaxems.levels import powersplit as ps
 from jaxems.levels.velocity import predict_velocity
 from jaxems.params import load_vehicle, vehicle_axes
@@ -247,6 +248,40 @@ def test_path_sync_energy_matches_a_loop():
         if m1 != m0 or (g1 != g0 and m1 != ps.MO):
             want[k] = float(P.sync_energy(VP, m0, g0, m1, g1, float(v[k]))) / float(VP.eta_m)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
+def np_mean_grade(s, ds):
+    """Mean gradient of ROUTE over [s, min(s + ds, L)] by summing the cells' overlaps (the
+    gradient at s where that stretch is empty)."""
+    g, L, h = np.asarray(ROUTE.grade), float(ROUTE.length), float(ROUTE.ds)
+    s1 = min(s + ds, L)
+    if s1 - s <= 1e-3:
+        return g[min(int(np.floor(s / h)), g.size - 1)]
+    rise = sum(g[i] * max(0.0, min(s1, (i + 1) * h) - max(s, i * h)) for i in range(g.size))
+    return rise / (s1 - s)
+
+
+@settings(max_examples=40)
+@given(s=st.floats(0.0, 1200.0), ds=st.floats(0.0, 40.0))
+def test_mean_grade_matches_the_cells_overlaps(s, ds):
+    track = P.make_track(ROUTE, PRED)
+    got = float(P._mean_grade(track, jnp.asarray(s), jnp.asarray(ds)))
+    assert got == pytest.approx(np_mean_grade(s, ds), abs=1e-9)
+
+
+def test_road_work_is_the_gradient_of_the_distance_covered():
+    """Each step's road load takes the mean gradient over its distance: the plant's road work
+    is the sum over its steps of F_0(v, mean gradient over [s_k, s_k+1]) (s_k+1 - s_k), whatever
+    the phase of the steps against the gradient's changes. Steps that fall short of their
+    target (switches) take the gradient over the target's distance: 0.012 % here. The gradient
+    at each step's start was 0.09 % off here (2 % of the short track's road work)."""
+    res = run(VP, -2.0)
+    s = np.append(np.asarray(res.trace.s), float(res.final.s))
+    v = np.asarray(res.trace.v)
+    road = sum(R.road_load(VP, v[k], np_mean_grade(s[k], s[k + 1] - s[k])) * (s[k + 1] - s[k])
+               for k in range(v.size) if s[k + 1] > s[k])
+    assert float(res.final.tot.road) == pytest.approx(road, rel=3e-4)
+    assert float(res.final.s) == pytest.approx(float(ROUTE.length))  # the whole route
 
 
 def test_final_braking_starts_after_the_references_last_traction():

@@ -328,10 +328,8 @@ def resample(route: Route, vp: VehicleParams, prof: Profile, dt, n_steps: int) -
     v_mean = ds_k / dt
     a_mean = jnp.diff(v_t) / dt
     # mean gradient over the step from the cumulative rise (tan form, exact per cell)
-    grade = jnp.asarray(route.grade, dtype)
     ds_r = jnp.asarray(route.ds, dtype)
-    rise_nodes = jnp.concatenate([jnp.zeros(1, dtype), jnp.cumsum(grade[:-1] * ds_r)])
-    rise_t = jnp.interp(s_t, prof.s, rise_nodes)
+    rise_t = jnp.interp(s_t, prof.s, node_rise(route, dtype))
     moving = ds_k > 1e-9 * ds_r
     g_mean = jnp.where(moving, jnp.diff(rise_t) / jnp.where(moving, ds_k, 1.0), g_i[:-1])
     E_kin = 0.5 * vp.mass * v_t * v_t
@@ -359,6 +357,15 @@ def resample(route: Route, vp: VehicleParams, prof: Profile, dt, n_steps: int) -
 def _last_node(mask):
     """(N,) bool: True at the last valid node."""
     return mask & ~jnp.concatenate([mask[1:], jnp.zeros(1, bool)])
+
+
+def node_rise(route: Route, dtype=None):
+    """(N,) height (m) of each node of one route above its start: the sum of grade * ds over
+    the cells before it. Interpolated linearly in s, its difference over [s_a, s_b] divided by
+    s_b - s_a is the mean gradient there, exact per cell (Level 3's steps, the plant's)."""
+    grade = jnp.asarray(route.grade, dtype)
+    ds = jnp.asarray(route.ds, grade.dtype)
+    return jnp.concatenate([jnp.zeros(1, grade.dtype), jnp.cumsum(grade[:-1] * ds)])
 
 
 def _road_forces(route: Route, vp: VehicleParams, dtype):
