@@ -431,12 +431,13 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     hold less goes first: where the plan's battery is held, the plant cannot do what the plan
     does (on the short track's first climb the discharging side first emptied the battery, and
     the plant then cruised on the engine where the plan cruised on the motor: 7.42 MJ corrected
-    against 7.27 with the charging side first). Each piece then takes, of the candidates whose
-    end comes closest to its target (within tol_rel E_b_max) with the battery held within its
-    limits (`battery_path`: a plan that drains the battery below empty on the way ends higher in
-    the plant than its sum says; the bisection on t_s judges ends the same way), the one whose
-    battery the limits hold least on the way. Where Level 1's decisions move the battery in
-    large steps (a whole climb on the motor or not) a residual remains. The plans' balances
+    against 7.27 with the charging side first, on the plant before its mean gradient). Each
+    piece then takes, of the candidates whose end comes closest to its target (within tol_rel
+    E_b_max) with the battery held within its limits (`battery_path`: a plan that drains the
+    battery below empty on the way ends higher in the plant than its sum says; the bisection on
+    t_s judges ends the same way), the one whose battery the limits hold least on the way.
+    Where Level 1's decisions move the battery in large steps (a whole climb on the motor or
+    not) a residual remains. The plans' balances
     count what their switches cost the battery (`steps_energy`).
     Without Level 2 pieces (pid all 0, target (1,) = [0]) this is charge sustaining.
     Returns (Level1Result, lambda_b (T,) used)."""
