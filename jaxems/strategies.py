@@ -1007,7 +1007,10 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     def attempt(carry, _):
         """One DP, its plan and plant run. The DP's battery counts the drift the last plant
         run showed against its plan (by position), so that its own path follows the plant's;
-        from the third attempt on, its end is aimed off by what the last one still missed.
+        from the third attempt on, its goal also moves by the last attempt's miss (integral
+        action on top of that drift, which the drift already contains once: an empirical
+        choice, on Urban Delivery the third attempt ends 0.42 % of the battery low with it,
+        2.6 % without).
         Its decisions become a plan (battery power trimmed so that the plan's own model ends
         where that drift is made up, counting the synchronisation energy the DP does not see)
         that runs on the plant; the next attempt's Level 3 prediction has the engine at this
