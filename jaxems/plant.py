@@ -489,6 +489,12 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     return (new, cparams, cstate), tr
 
 
+def step_bounds(pred):
+    """(T+1,) positions (m) of a Level 3 prediction's step starts and of the route's end (the
+    masked steps after the trip at the end)."""
+    return jnp.concatenate([jnp.where(pred.mask, pred.s, pred.length), pred.length[None]])
+
+
 def make_track(route, pred, end_cap: bool = True) -> Track:
     """The plant's `Track` from a `Route` and its Level 3 `Prediction` (one route).
 
@@ -499,7 +505,7 @@ def make_track(route, pred, end_cap: bool = True) -> Track:
     mask = pred.mask
     v_end = jnp.sum(jnp.where(prof.mask & ~jnp.concatenate([prof.mask[1:], jnp.zeros(1, bool)]),
                               prof.v, 0.0))
-    ref_s = jnp.concatenate([jnp.where(mask, pred.s, pred.length), pred.length[None]])
+    ref_s = step_bounds(pred)
     ref_v = jnp.concatenate([jnp.where(mask, pred.v_ref, v_end), v_end[None]])
     is_stop = (jnp.asarray(route.stop) > 0) & jnp.asarray(route.mask)
     pos = jnp.where(is_stop, prof.s, jnp.inf)

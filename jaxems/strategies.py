@@ -400,7 +400,7 @@ def plant_drift(pred, plan: Plan, res: pl.PlantResult) -> Drift:
     """How far the plant's battery energy fell from the plan's along the route: the switches
     the plant adds (stops, protection), the energy the open driveline costs and the speeds it
     drives move the battery in ways the plan's model does not see."""
-    s = jnp.concatenate([jnp.where(pred.mask, pred.s, pred.length), pred.length[None]])
+    s = pl.step_bounds(pred)
     s_plant = jnp.concatenate([res.trace.s, res.final.s[None]])
     E_plant = jnp.concatenate([res.trace.E_b, res.final.E_b[None]])
     E_ref = jnp.concatenate([plan.E_ref, plan.E_ref[-1:]])
@@ -412,9 +412,7 @@ def compensate(pieces, pred, bnd, drift: Drift):
     energy change is raised by what the plant lost over the same stretch of road. bnd: (K+1,)
     step indices of the piece boundaries (padded with T)."""
     pid, target = pieces
-    T = pred.v.shape[0]
-    i = jnp.clip(bnd, 0, T - 1)
-    s_b = jnp.where((bnd < T) & pred.mask[i], pred.s[i], pred.length)
+    s_b = pl.step_bounds(pred)[jnp.clip(bnd, 0, pred.v.shape[0])]
     d = jnp.interp(s_b, drift.s, drift.dE)
     return pid, target - (d[1:] - d[:-1])
 
@@ -1018,8 +1016,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         pred, drift, goal, k = carry
         track = pl.make_track(route, pred, opts.end_cap)
         tab = bound_tables(vp, pred, dt, opts, params)
-        s_b = jnp.concatenate([jnp.where(pred.mask, pred.s, pred.length), pred.length[None]])
-        d = jnp.diff(jnp.interp(s_b, drift.s, drift.dE))  # (T,) the drift of each step
+        d = jnp.diff(jnp.interp(pl.step_bounds(pred), drift.s, drift.dE))  # (T,) per step
         bp = bound_dp(vp, pred, tab._replace(dEb=tab.dEb + d[:, None, None]), goal,
                       opts.dp_n_E, opts.dp_penalty)
         mode, gear = bp.state // n_g, bp.state % n_g
@@ -1032,7 +1029,8 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         w = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), gear[:, None], axis=1)[:, 0]
         miss = res.final.E_b - res.E_b0
         nxt = (repredict_level3(route, vp, dt, n_steps, pred, mode, w),
-               plant_drift(pred, plan, res), jnp.where(k >= 1, goal - miss, goal), k + 1)
+               plant_drift(pred, plan, res),
+               jnp.where(k >= 1, jnp.clip(goal - miss, 0.0, vp.E_b_max), goal), k + 1)
         return nxt, (res, bp.lam0, extra, pred)
 
     init = (pred0, no_drift(pred0), jnp.asarray(E0, dtype), jnp.zeros((), jnp.int32))
