@@ -45,7 +45,7 @@ import jax.numpy as jnp
 from . import powertrain as pt
 from . import switching as sw
 from .levels import powersplit as ps
-from .levels.velocity import V_CRAWL, node_rise
+from .levels.velocity import V_CRAWL, last_node, node_rise
 from .params import VehicleParams
 
 MO = ps.MO
@@ -503,8 +503,7 @@ def make_track(route, pred, end_cap: bool = True) -> Track:
     """
     prof = pred.profile
     mask = pred.mask
-    v_end = jnp.sum(jnp.where(prof.mask & ~jnp.concatenate([prof.mask[1:], jnp.zeros(1, bool)]),
-                              prof.v, 0.0))
+    v_end = jnp.sum(jnp.where(last_node(prof.mask), prof.v, 0.0))
     ref_s = step_bounds(pred)
     ref_v = jnp.concatenate([jnp.where(mask, pred.v_ref, v_end), v_end[None]])
     is_stop = (jnp.asarray(route.stop) > 0) & jnp.asarray(route.mask)

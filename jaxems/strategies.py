@@ -906,8 +906,7 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
     w0 = jnp.full_like(pred.v, vp.w_pred)
     c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w0, pred.mask, dt)  # prices switching
     lam_sw = c2.lam
-    last = pred.mask & ~jnp.concatenate([pred.mask[1:], jnp.zeros(1, bool)])
-    lam_end = jnp.sum(jnp.where(last, lam_sw, 0.0))
+    lam_end = jnp.sum(jnp.where(l3.last_node(pred.mask), lam_sw, 0.0))
     lams = dp_candidate_lams(opts.dp_lams).astype(pred.v.dtype)
 
     # candidate splits: (T, J, S) battery power, fuel power; infeasible -> BIG cost

@@ -195,9 +195,9 @@ def test_dp_bound_grid_refinement():
     opts = S.Options()
     tab = S.bound_tables(VP, pred, 1.0, opts, sw.SwitchCostParams())
     E0 = float(VP.soc0 * VP.E_b_max)
-    fuel = []
+    fuel, dp = [], jax.jit(S.bound_dp, static_argnums=4)
     for n_E in (101, 401):
-        bp = jax.jit(S.bound_dp, static_argnums=4)(VP, pred, tab, E0, n_E, opts.dp_penalty)
+        bp = dp(VP, pred, tab, E0, n_E, opts.dp_penalty)
         dE = float(bp.E_end) - E0
         assert abs(dE) < 0.01 * float(VP.E_b_max)
         fuel.append(float(np.sum(bp.cost)) + float(tab.lam_end) * dE)

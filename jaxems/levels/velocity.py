@@ -320,7 +320,7 @@ def resample(route: Route, vp: VehicleParams, prof: Profile, dt, n_steps: int) -
     s_t, v_t, W_t, g_i, _ = _cell_state(route, vp, prof, tk)
     # from the trip time on, the state is the end of the route (its final speed)
     done = tk >= prof.trip_time
-    v_end = jnp.sum(jnp.where(_last_node(prof.mask), prof.v, 0.0))
+    v_end = jnp.sum(jnp.where(last_node(prof.mask), prof.v, 0.0))
     s_t = jnp.where(done, prof.length, s_t)
     v_t = jnp.where(done, v_end, v_t)
     ds_k = jnp.diff(s_t)
@@ -354,8 +354,9 @@ def resample(route: Route, vp: VehicleParams, prof: Profile, dt, n_steps: int) -
     )
 
 
-def _last_node(mask):
-    """(N,) bool: True at the last valid node."""
+def last_node(mask):
+    """(N,) bool: True at the last valid entry of a mask (a route's last node, a prediction's
+    last step)."""
     return mask & ~jnp.concatenate([mask[1:], jnp.zeros(1, bool)])
 
 
@@ -802,7 +803,7 @@ def speed_bounds(route: Route, vp: VehicleParams, w_pred=None, overspeed=0.0):
     band = jnp.asarray(overspeed, prof.v.dtype)
     env = velocity_profile(route._replace(vmax=jnp.where(vmax >= vp.v_cruise, vmax + band, vmax)),
                            vp._replace(v_cruise=vp.v_cruise + band), w_pred)
-    ends = _last_node(mask) | (jnp.arange(mask.shape[0]) == 0)
+    ends = last_node(mask) | (jnp.arange(mask.shape[0]) == 0)
     hi = jnp.where(ends, prof.v, jnp.maximum(env.v, prof.v))
     lo = jnp.where(mask, jnp.minimum(floor, hi), 0.0)
     lo = jnp.where(ends, hi, lo)
