@@ -2,6 +2,7 @@
 a plain NumPy Viterbi loop, MPC against the full horizon, batching and recompilation."""
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -199,6 +200,34 @@ def test_switching_costs_reduce_switching():
     Hs, _, _ = ps.optimal_mode_gear(tab)
     np.testing.assert_allclose(np.asarray(free.H), np.asarray(Hs), rtol=1e-12)
     np.testing.assert_allclose(float(free.cost), float(np.sum(Hs) * DT), rtol=1e-12)
+
+
+@jax.jit
+def _full_and_merged(vp, P_d, v, grade, lam):
+    tb = l1._tables(vp, P_d, v, grade, lam, DT, PRM)
+    init = l1._init_cost(jnp.int32(ps.MO), jnp.int32(0), 48, 12, tb.stage.dtype)
+    mask = jnp.ones(P_d.shape, bool)
+    args = (vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask)
+    return l1.solve_dp(*args, fast=False), l1.solve_dp(*args, fast=True), tb
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), dlam=st.floats(-0.8, 0.8), conventional=st.booleans())
+def test_merged_open_states_give_the_full_dp(seed, dlam, conventional):
+    """The fast DP runs the open mode as one state (`merge_open`): the same optimum and path
+    as the structured relaxation over all 48 states, because the open states are equivalent."""
+    vp, P_d, v, grade, lam = synthetic_route(seed=seed % 1000)
+    vp = vp.conventional() if conventional else vp
+    full, merged, tb = _full_and_merged(vp, P_d, v, grade, lam + dlam)
+    # the equivalence merge_open relies on: open states' costs do not depend on the gear
+    o = slice(ps.MO * 12, 48)
+    stage, D, trac = np.asarray(tb.stage), np.asarray(tb.dconsts.D), np.asarray(tb.xs.trac)
+    assert np.all(stage[:, o] == stage[:, o][:, :1])
+    assert np.all(D[o] == D[o][:1]) and np.all(D[:, o] == D[:, o][:, :1])
+    assert np.all(trac[:, :, o] == 0.0)
+    np.testing.assert_allclose(float(merged.cost), float(full.cost), rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(merged.path), np.asarray(full.path))
+    assert int(merged.start) == int(full.start)
 
 
 def test_unequal_open_times_use_the_structured_relaxation():
