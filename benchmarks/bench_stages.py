@@ -100,12 +100,8 @@ def main(argv=None) -> int:
     c2 = timed("level2", v(lambda vp, p, w: l2.costate_kernel(
         vp, p.P_d, p.v, w, p.mask, dt, max_pieces=opts.l2_pieces)), vps, pred, w0)
 
-    def pieces_of(vp, p, c):  # as `_iterate`'s first iteration
-        lam = S.guard_lambda(c, 1e-3 * vp.E_b_max) if opts.guard_sides else c.lam
-        return lam, S.compensate(S.piece_targets(c, p.v.shape[0]), p, c.boundaries,
-                                 S.no_drift(p))
-
-    lam, pieces = jax.jit(v(pieces_of))(vps, pred, c2)
+    lam, pieces = jax.jit(v(lambda vp, p, c: S.level1_targets(vp, p, c, S.no_drift(p), opts)))(
+        vps, pred, c2)
     trac = jax.jit(v(lambda vp, p: l1.traction_table(vp, p.v, p.grade, params)))(vps, pred)
 
     def tables(vp, p, lam_t, tr):

@@ -649,6 +649,16 @@ def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     return _iterate(route, vp, dt, n_steps, opts, params, level3(route, vp, dt, n_steps), True)
 
 
+def level1_targets(vp, pred, c2: l2.CostateResult, drift: Drift, opts: Options):
+    """What an iteration's Level 1 gets of Level 2: the costate (T,) (moved to the side of
+    Level 2's I2b sequence at guards, `guard_lambda`, if opts.guard_sides) and Level 2's pieces
+    (pid (T,), target (K,)), made up for the battery drift the plant showed on the last
+    iteration (`compensate`)."""
+    lam_g = guard_lambda(c2, 1e-3 * vp.E_b_max) if opts.guard_sides else c2.lam
+    pieces = compensate(piece_targets(c2, pred.v.shape[0]), pred, c2.boundaries, drift)
+    return lam_g, pieces
+
+
 def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredict: bool) -> Run:
     """The iteration scheme from the prediction pred0; repredict (static): Level 3 re-predicts
     with Level 1's engine speed each iteration (else the speed profile stays pred0's)."""
@@ -658,9 +668,7 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
         pred, w, drift = carry
         c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w, pred.mask, dt,
                                max_pieces=opts.l2_pieces)
-        lam_g = guard_lambda(c2, 1e-3 * vp.E_b_max) if opts.guard_sides else c2.lam
-        # Level 2's pieces, made up for the battery drift the plant showed on the last iteration
-        pieces = compensate(piece_targets(c2, pred.v.shape[0]), pred, c2.boundaries, drift)
+        lam_g, pieces = level1_targets(vp, pred, c2, drift, opts)
         if opts.sustain:
             r1, lam1 = sustaining_level1(vp, pred, lam_g, dt, params, *pieces,
                                          fast=opts.same_open_time)
@@ -1001,7 +1009,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     n_g = vp.gear_ratio.shape[-1]
     T = pred0.v.shape[0]
 
-    def attempt(carry, _):
+    def attempt(carry, k):
         """One DP, its plan and plant run. The DP's battery counts the drift the last plant
         run showed against its plan (by position), so that its own path follows the plant's;
         from the third attempt on, its goal also moves by the last attempt's miss (integral
@@ -1012,7 +1020,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         where that drift is made up, counting the synchronisation energy the DP does not see)
         that runs on the plant; the next attempt's Level 3 prediction has the engine at this
         DP's speeds (as the iteration's)."""
-        pred, drift, goal, k = carry
+        pred, drift, goal = carry
         track = pl.make_track(route, pred, opts.end_cap)
         tab = bound_tables(vp, pred, dt, opts, params)
         d = jnp.diff(jnp.interp(pl.step_bounds(pred), drift.s, drift.dE))  # (T,) per step
@@ -1029,12 +1037,12 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         miss = res.final.E_b - res.E_b0
         nxt = (repredict_level3(route, vp, dt, n_steps, pred, mode, w),
                plant_drift(pred, plan, res),
-               jnp.where(k >= 1, jnp.clip(goal - miss, 0.0, vp.E_b_max), goal), k + 1)
+               jnp.where(k >= 1, jnp.clip(goal - miss, 0.0, vp.E_b_max), goal))
         return nxt, (res, bp.lam0, extra, pred)
 
-    init = (pred0, no_drift(pred0), jnp.asarray(E0, dtype), jnp.zeros((), jnp.int32))
-    _, (ress, lam_dps, extras, preds) = jax.lax.scan(attempt, init, None,
-                                                     length=opts.dp_attempts)
+    init = (pred0, no_drift(pred0), jnp.asarray(E0, dtype))
+    _, (ress, lam_dps, extras, preds) = jax.lax.scan(attempt, init,
+                                                     jnp.arange(opts.dp_attempts))
     # of the plant runs that end within half the charge tolerance of their start, the one of
     # least corrected fuel (else the one that ends closest to its start)
     miss = ress.final.E_b - ress.E_b0
