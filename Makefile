@@ -20,7 +20,7 @@ demo: $(STAMP)
 # --dist loadfile: each test module on one worker, so that a module's shared fixture (every
 # strategy on the short track, the sweep) is computed once (loadgroup did not group here)
 test: $(STAMP)
-	$(PY) -m pytest -n 2 --dist loadfile -p no:cacheprovider
+	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_level1.py

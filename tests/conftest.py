@@ -1,6 +1,20 @@
-"""Tests run in float64 (sweeps run float32 by default); matplotlib without a display."""
+"""Tests run in float64 (sweeps run float32 by default); matplotlib without a display.
+
+One persistent JAX compilation cache serves the whole run: the pytest-xdist workers, and the
+processes tests start (CLI runs, sweep workers), load what another process compiled instead
+of compiling it again (it saves compile time only; results are the same). The directory is made
+for the run and removed after it, so every run is timed from a cold cache, as CI's is; set
+JAX_COMPILATION_CACHE_DIR to keep one between runs.
+
+`make test` hands whole files to two workers in collection order (pytest-xdist's loadfile,
+--no-loadscope-reorder), and the collection is ordered here: the longest compilations first,
+one per worker, and last the files that run what test_strategies.py has compiled by then (the
+short track's strategies, which they load from the cache).
+"""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
@@ -12,3 +26,35 @@ from hypothesis import settings  # noqa: E402
 
 settings.register_profile("jaxems", max_examples=40, deadline=None, derandomize=True)
 settings.load_profile("jaxems")
+
+CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+
+
+def pytest_configure(config):
+    # the controller (or a run without xdist) makes the directory; workers inherit the variable
+    if not hasattr(config, "workerinput") and not os.environ.get(CACHE_ENV):
+        config._jaxems_cache = os.environ[CACHE_ENV] = tempfile.mkdtemp(prefix="jaxems-jax-")
+    jax.config.update("jax_compilation_cache_dir", os.environ[CACHE_ENV])
+
+
+def pytest_unconfigure(config):
+    made = getattr(config, "_jaxems_cache", None)
+    if made is not None:
+        shutil.rmtree(made, ignore_errors=True)
+        del os.environ[CACHE_ENV]
+
+
+FIRST = ("test_strategies.py", "test_eco.py", "test_battery.py", "test_level1.py",
+         "test_plant.py", "test_reference.py")
+LAST = ("test_experiments.py", "test_cli_simulate.py", "test_cli.py", "test_demo.py",
+        "test_sweep.py", "test_sweep_kill.py")
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        if name in FIRST:
+            return FIRST.index(name)
+        return len(FIRST) + (1 + LAST.index(name) if name in LAST else 0)
+
+    items.sort(key=rank)  # stable: within a file, the file's own order

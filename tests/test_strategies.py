@@ -191,9 +191,10 @@ def test_dp_bound_grid_refinement():
 
     route = load_route("short_track")
     n = S.steps_for_batch(route, VP)
-    pred = S.level3(route, VP, 1.0, n)
+    pred = jax.jit(S.level3, static_argnums=(2, 3))(route, VP, 1.0, n)
     opts = S.Options()
-    tab = S.bound_tables(VP, pred, 1.0, opts, sw.SwitchCostParams())
+    tab = jax.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts,
+                                                          sw.SwitchCostParams())
     E0 = float(VP.soc0 * VP.E_b_max)
     fuel, dp = [], jax.jit(S.bound_dp, static_argnums=4)
     for n_E in (101, 401):
@@ -286,7 +287,8 @@ def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
     E0 = float(vp.soc0) * size
     for name, brakes_to_end in (("short_track", False), ("RegionalDelivery", True)):
         route = load_route(name)
-        pred = S.level3(route, vp, 1.0, S.steps_for_batch(route, vp))
+        pred = jax.jit(S.level3, static_argnums=(2, 3))(route, vp, 1.0,
+                                                        S.steps_for_batch(route, vp))
         for cap in (True, False):
             opts = S.Options(end_cap=cap, mpc_end_reserve=0.05)
             track = pl.make_track(route, pred, cap)

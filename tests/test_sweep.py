@@ -181,15 +181,7 @@ def test_precision_scope_sets_and_restores():
     assert jnp.zeros(()).dtype == before
 
 
-@pytest.fixture
-def jax_cache_env(tmp_path_factory, monkeypatch):
-    """Worker processes share a persistent compilation cache (saves compile time only)."""
-    cache = tmp_path_factory.getbasetemp() / "jax-cache"
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(cache))
-    return cache
-
-
-def test_dask_two_worker_processes_give_the_same_table(sweep_a, tmp_path, jax_cache_env):
+def test_dask_two_worker_processes_give_the_same_table(sweep_a, tmp_path):
     """Chunks sent to a running cluster (the --scheduler path) of two worker processes on
     loopback; the workers run float64 because the sweep says so (the test process's x64 setting
     does not reach them)."""
