@@ -18,7 +18,9 @@ demo: $(STAMP)
 	@$(PY) -m jaxems.demo --out out
 
 # --dist loadfile: each test module on one worker, so that a module's shared fixture (every
-# strategy on the short track, the sweep) is computed once (loadgroup did not group here)
+# strategy on the short track, the sweep) is computed once (loadgroup did not group here);
+# --no-loadscope-reorder: modules in the order tests/conftest.py gives (longest compilations
+# first, the modules that reuse test_strategies' compilations from the shared cache last)
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider
 

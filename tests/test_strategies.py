@@ -18,6 +18,7 @@ from jaxems.io import load_route
 from jaxems.params import load_vehicle, stack_vehicles
 
 VP = load_vehicle().replace(mass=25000.0)
+LEVEL3 = jax.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 
 
@@ -191,7 +192,7 @@ def test_dp_bound_grid_refinement():
 
     route = load_route("short_track")
     n = S.steps_for_batch(route, VP)
-    pred = jax.jit(S.level3, static_argnums=(2, 3))(route, VP, 1.0, n)
+    pred = LEVEL3(route, VP, 1.0, n)
     opts = S.Options()
     tab = jax.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts,
                                                           sw.SwitchCostParams())
@@ -287,8 +288,7 @@ def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
     E0 = float(vp.soc0) * size
     for name, brakes_to_end in (("short_track", False), ("RegionalDelivery", True)):
         route = load_route(name)
-        pred = jax.jit(S.level3, static_argnums=(2, 3))(route, vp, 1.0,
-                                                        S.steps_for_batch(route, vp))
+        pred = LEVEL3(route, vp, 1.0, S.steps_for_batch(route, vp))
         for cap in (True, False):
             opts = S.Options(end_cap=cap, mpc_end_reserve=0.05)
             track = pl.make_track(route, pred, cap)
