@@ -98,8 +98,7 @@ def dp_level1(stage, xs, dconsts):
     the states with the open mode's merged, `merge_open`: 37 x 37 relaxations a step, counted
     below as the 48 x 48 they stand for)."""
     init = jnp.zeros(stage.shape[1:], stage.dtype)
-    st, x, dc, ini = l1.merge_open(stage, xs, dconsts, init)
-    r = dp.viterbi(st, l1.fast_transition(x, dc), ini)
+    r = l1.solve_dp(None, None, stage, xs, None, dconsts, init, None, fast=True)
     return r.path, r.cost
 
 
@@ -207,9 +206,9 @@ def main(argv=None) -> int:
     init = jnp.where(jnp.arange(S) == 2 * 12 + 9, 0.0, jnp.inf).astype(jnp.float32)
 
     @jax.jit
-    def mpc_solve(stage, xs, dconsts, init):  # as `solve_dp` runs it: open mode merged
-        st, x, dc, ini = l1.merge_open(stage, xs, dconsts, init)
-        return dp.viterbi_first(st, l1.fast_transition(x, dc), ini)
+    def mpc_solve(stage, xs, dconsts, init):  # as the strategies run it: open mode merged
+        return l1.solve_dp(None, None, stage, xs, None, dconsts, init, None, first=True,
+                           fast=True)
 
     @jax.jit
     def mpc_solve_48(stage, xs, dconsts, init):

@@ -30,9 +30,7 @@ stages measured in one run.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
-import math
 import sys
 import time
 from pathlib import Path
@@ -122,11 +120,7 @@ def main(argv=None) -> int:
     timed("level1_viterbi_cost_only", v(lambda *a: viterbi(*a).cost), vps, tb, pred)
     r1, lam1 = timed("level1_sustaining", v(lambda vp, p, lam_t, pc: S.sustaining_level1(
         vp, p, lam_t, dt, params, *pc, fast=opts.same_open_time)), vps, pred, lam, pieces)
-    # sustaining_level1's DPs: the shift's bisection, the two sides, the time split's
-    # bisection, the four candidates and the final plan
-    T = int(pred.v.shape[-1])
-    n_bisect = inspect.signature(S.sustaining_level1).parameters["n_bisect"].default
-    out["sustaining_dps"] = n_bisect + 2 + (int(math.ceil(math.log2(T + 1))) + 1) + 4 + 1
+    out["sustaining_dps"] = S.sustaining_dps(int(pred.v.shape[-1]))
     n_plant = S.plant_steps(n_steps, opts)
 
     def plant(vp, p, r, lam_t, pc):

@@ -417,6 +417,17 @@ def compensate(pieces, pred, bnd, drift: Drift):
     return pid, target - (d[1:] - d[:-1])
 
 
+def _split_bisections(T: int) -> int:
+    """Bisection steps of `sustaining_level1`'s time split over T steps (down to one step)."""
+    return int(math.ceil(math.log2(T + 1))) + 1
+
+
+def sustaining_dps(T: int, n_bisect: int = 14) -> int:
+    """Full-route Level 1 DPs one `sustaining_level1` call runs over T steps: the shift's
+    bisection, the two sides, the time split's bisection, the four candidates, the final plan."""
+    return n_bisect + 2 + _split_bisections(T) + 4 + 1
+
+
 def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14,
                       gap: float = 0.05, fast=None, tol_rel: float = 2.5e-3):
     """Level 1 that keeps Level 2's battery plan: on each Level 2 piece (pid: (T,) step ->
@@ -488,7 +499,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         on = (score(joined(m))[0] > 0) == then_high
         return jnp.where(on, m, t0), jnp.where(on, t1, m)
 
-    t0, t1 = jax.lax.fori_loop(0, int(math.ceil(math.log2(T + 1))) + 1, bis_t, (start, end))
+    t0, t1 = jax.lax.fori_loop(0, _split_bisections(T), bis_t, (start, end))
     cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
     errs, held = jax.lax.map(score, cands)  # (4, K), one DP at a time (memory)
     near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
