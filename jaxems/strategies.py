@@ -456,56 +456,82 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     k = jnp.arange(T)
     dtype = pred.v.dtype
     trac = l1.traction_table(vp, pred.v, pred.grade, params)  # the same for every lambda_b
-
-    def plan_dE(lam_t):  # (T,) the energy change of each step of Level 1's plan
-        r = _level1(vp, pred, lam_t, dt, params, fast, trac)
-        return steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
-
-    def err_of(lam_t):  # (K,) plan's energy change per piece minus the target
-        return piece_error(plan_dE(lam_t), pid, target)
+    # the DPs in order: the shift's bisection, the two sides, the time split's bisection, the
+    # four candidates, the final plan; one loop with one DP in its body, so that the DP
+    # compiles once (at five call sites it took 2.9x the compile time)
+    p_side = n_bisect
+    p_split = p_side + 2
+    p_cand = p_split + _split_bisections(T)
+    p_final = p_cand + 4
 
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
 
-    # a piece's dE decreases as its shift grows (cheaper battery: discharge)
-    half = jnp.full((K,), 1.5, dtype)
-    a, b = bisect_pieces(lambda d: err_of(shifted(d)), -half, half, n_bisect)
-    # either side of the jump, shifted apart so that the DP, which weighs switching costs over
-    # the whole horizon, follows each side in its own part of the piece
-    ja, jb = shifted(a - gap), shifted(b + gap)
-
     start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
     end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
 
-    def score(lam_t):  # (K,) each: the plan's piece error within the battery's limits, as
-        # the plant holds them, and the energy the limits hold on the way
-        dE = plan_dE(lam_t)
-        e = held_piece_error(vp, dE, pid, target)
-        return e, jnp.abs(e - piece_error(dE, pid, target))
+    def plans(c):  # what the loop's state decides: the sides and the candidates
+        a, b, held_err, held, t0, t1 = c[:6]
+        # either side of the jump, shifted apart so that the DP, which weighs switching costs
+        # over the whole horizon, follows each side in its own part of the piece
+        ja, jb = shifted(a - gap), shifted(b + gap)
+        # the side whose plan alone the limits hold less goes first (per piece)
+        charge_first = held[1] > held[0]
+        first = jnp.where(charge_first[pid], ja, jb)
+        then = jnp.where(charge_first[pid], jb, ja)
+        then_high = jnp.where(charge_first, held_err[1], held_err[0]) > 0  # `then` alone
 
-    # the side whose plan alone the limits hold less goes first (per piece)
-    (e_a, e_b), (h_a, h_b) = jax.lax.map(score, jnp.stack([ja, jb]))  # one DP at a time
-    charge_first = h_b > h_a
-    first = jnp.where(charge_first[pid], ja, jb)
-    then = jnp.where(charge_first[pid], jb, ja)
-    then_high = jnp.where(charge_first, e_b, e_a) > 0  # (K,) the held error of `then` alone
+        def joined(ts):  # ts: (K,) the step of each piece where `then` takes over from `first`
+            return jnp.where(k < ts[pid], first, then)
 
-    def joined(ts):  # ts: (K,) the step of each piece where `then` takes over from `first`
-        return jnp.where(k < ts[pid], first, then)
+        cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
+        return ja, jb, joined, then_high, cands
 
-    def bis_t(_, c):  # joined(start) is `then` alone, joined(end) `first` alone
-        t0, t1 = c
+    def lam_of(i, c, sides):  # (T,) the costate of DP number i
+        a, b, held_err, held, t0, t1 = c[:6]
+        ja, jb, joined, _, cands = sides
+        errs, hs = held_err[2:], held[2:]  # (4, K) the candidates'
+        near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
+        best = jnp.argmin(jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
+        phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_split, p_cand, p_final]))
+        return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb, joined((t0 + t1) // 2),
+                                cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
+
+    def step(i, c):
+        a, b, held_err, held, t0, t1, _ = c
+        sides = plans(c)
+        lam_t = lam_of(i, c, sides)
+        # the switching costs along the path only for the final plan, which returns them
+        r = _level1(vp, pred, lam_t, dt, params, fast, trac, i == p_final)
+        dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
+        e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
+        # within the battery's limits, as the plant holds them, and what the limits hold (the
+        # shift's bisection needs neither; `i` is not batched, so under vmap this stays a cond)
+        e_held = jax.lax.cond(i < p_side, lambda: e,
+                              lambda: held_piece_error(vp, dE, pid, target))
+        # the shift: a piece's dE decreases as its shift grows (cheaper battery: discharge)
+        bis = i < p_side
+        pos = e > 0
+        a, b = jnp.where(bis & pos, 0.5 * (a + b), a), jnp.where(bis & ~pos, 0.5 * (a + b), b)
+        # the time split: joined(start) is `then` alone, joined(end) `first` alone
+        split = (i >= p_split) & (i < p_cand)
         m = (t0 + t1) // 2
-        on = (score(joined(m))[0] > 0) == then_high
-        return jnp.where(on, m, t0), jnp.where(on, t1, m)
+        on = (e_held > 0) == sides[3]
+        t0, t1 = jnp.where(split & on, m, t0), jnp.where(split & ~on, m, t1)
+        # the scores of the sides (slots 0, 1) and the candidates (2-5)
+        slot = jnp.where(i < p_split, i - p_side, i - p_cand + 2)
+        keep = ((i >= p_side) & (i < p_split)) | ((i >= p_cand) & (i < p_final))
+        held_err = jnp.where(keep, held_err.at[slot].set(e_held), held_err)
+        held = jnp.where(keep, held.at[slot].set(jnp.abs(e_held - e)), held)
+        return a, b, held_err, held, t0, t1, (r, lam_t)
 
-    t0, t1 = jax.lax.fori_loop(0, _split_bisections(T), bis_t, (start, end))
-    cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
-    errs, held = jax.lax.map(score, cands)  # (4, K), one DP at a time (memory)
-    near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
-    best = jnp.argmin(jnp.where(near, held + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
-    lam_t = cands[best[pid], k]
-    return _level1(vp, pred, lam_t, dt, params, fast, trac), lam_t
+    half = jnp.full((K,), 1.5, dtype)
+    scores = jnp.zeros((6, K), dtype)
+    r0 = jax.eval_shape(lambda: _level1(vp, pred, lam, dt, params, fast, trac))
+    out0 = (jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), r0),
+            jnp.zeros((T,), dtype))
+    c = jax.lax.fori_loop(0, p_final + 1, step, (-half, half, scores, scores, start, end, out0))
+    return c[-1]
 
 
 def _init_state(pred: l3.Prediction):
@@ -546,12 +572,12 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Met
     )
 
 
-def _level1(vp, pred, lam, dt, params, fast=None, trac=None):
+def _level1(vp, pred, lam, dt, params, fast=None, trac=None, switch_costs=True):
     """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice; trac:
-    `level1.traction_table` of the prediction, if at hand)."""
+    `level1.traction_table` of the prediction, if at hand; switch_costs: `level1._result`'s)."""
     m0, g0 = _init_state(pred)
     return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
-                           fast, trac)
+                           fast, trac, switch_costs)
 
 
 def _engine_speed_nodes(route, pred, w_steps):

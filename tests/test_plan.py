@@ -15,6 +15,7 @@ from jaxems import powertrain as pt
 from jaxems import strategies as S
 from jaxems import switching as sw
 from jaxems.io import load_route
+from jaxems.levels import battery as l2
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
 from jaxems.reference import ref_battery_path, ref_plan_energy
@@ -197,3 +198,71 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery():
             assert abs(e[p] - goal[p]) < 1.0, (p, e[p], goal[p])
     # untrimmed, the plan misses it: the plant would hold the battery at a limit on the way
     assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4
+
+
+PARAMS = sw.SwitchCostParams()
+level1 = jax.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))
+one_plan = jax.jit(lambda lam_t: S.steps_energy(
+    VP, PRED, *(lambda r: (r.mode, r.gear, r.P_b))(level1(lam_t)), 1.0))
+sustain = jax.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
+                                                               target))
+
+
+def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
+    """`sustaining_level1`'s DPs one by one, each its own call, the logic between them in NumPy:
+    the shift's bisection, the two sides, the time split's bisection, the four candidates, the
+    final plan. Returns (lambda_b (T,) of the final plan, the number of DPs)."""
+    lo_b, hi_b = l2.LAM_BRACKET
+    lam, pid, target = np.broadcast_to(lam, (T,)), np.asarray(pid), np.asarray(target)
+    K = target.shape[0]
+    n_dp = [0]
+
+    def score(lam_t):  # (held error, what the limits hold) per piece
+        dE = np.asarray(one_plan(jnp.asarray(lam_t)))
+        n_dp[0] += 1
+        e = np.bincount(pid, dE, K) - target
+        _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max, dE, pid, target)
+        return e, E_end - goal, np.abs(E_end - goal - e)
+
+    shifted = lambda d: np.clip(lam + d[pid], lo_b, hi_b)  # noqa: E731
+    a, b = np.full(K, -1.5), np.full(K, 1.5)
+    for _ in range(n_bisect):
+        m = 0.5 * (a + b)
+        pos = score(shifted(m))[0] > 0
+        a, b = np.where(pos, m, a), np.where(pos, b, m)
+    ja, jb = shifted(a - gap), shifted(b + gap)
+    (_, e_a, h_a), (_, e_b, h_b) = score(ja), score(jb)
+    charge_first = h_b > h_a
+    first, then = np.where(charge_first[pid], ja, jb), np.where(charge_first[pid], jb, ja)
+    then_high = np.where(charge_first, e_b, e_a) > 0
+    k = np.arange(T)
+    joined = lambda ts: np.where(k < ts[pid], first, then)  # noqa: E731
+    t0 = np.array([k[pid == p].min() if (pid == p).any() else T for p in range(K)])
+    t1 = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    for _ in range(S._split_bisections(T)):
+        m = (t0 + t1) // 2
+        on = (score(joined(m))[1] > 0) == then_high
+        t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
+    cands = [shifted(a), shifted(b), joined(t0), joined(t1)]
+    errs, held = np.array([score(c)[1:] for c in cands]).transpose(1, 0, 2)
+    near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * VP.E_b_max
+    best = np.argmin(np.where(near, held + 1e-3 * np.abs(errs), np.inf), axis=0)
+    return np.array(cands)[best[pid], k], n_dp[0] + 1
+
+
+@pytest.mark.parametrize("target", [(0.0, 0.0), (-4e5, 3e5), (6e5, -9e5)])
+def test_sustaining_level1_equals_its_dps_run_one_by_one(target):
+    """The one loop of `sustaining_level1` (one DP in its body) against its phases run one
+    by one: the same costate, decisions and DP count."""
+    lam = jnp.full(T, -2.0)
+    r, lam_t = sustain(lam, PID, jnp.asarray(target, float))
+    want, n_dp = loop_sustaining(-2.0, PID, target)
+    assert n_dp == S.sustaining_dps(T)
+    np.testing.assert_allclose(np.asarray(lam_t), want, rtol=1e-12, atol=1e-12)
+    # the final plan as Level 1 alone gives it, switching costs included
+    r_want = level1(jnp.asarray(want))
+    np.testing.assert_array_equal(np.asarray(r.state), np.asarray(r_want.state))
+    for f in ("P_b", "P_f", "switch_cost", "cost"):
+        np.testing.assert_allclose(np.asarray(getattr(r, f)), np.asarray(getattr(r_want, f)),
+                                   rtol=1e-9, atol=1e-6, err_msg=f)
+    assert float(r.cost) > float(jnp.sum(r.H))  # the path's switches cost something

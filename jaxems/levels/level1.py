@@ -393,15 +393,26 @@ def _init_cost(init_mode, init_gear, S, n_g, dtype):
     return jnp.where(init_mode < 0, jnp.zeros(S, dtype), onehot)
 
 
-def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1Result:
+def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params,
+            switch_costs=True) -> Level1Result:
+    """The path's decisions and powers; switch_costs: a bool () not batched, or True: where it
+    is False, switch_cost is 0 and cost counts the stages only (a caller that needs neither
+    skips their evaluation along the path)."""
     n_g = vp.gear_ratio.shape[-1]
     mode, gear = path // n_g, path % n_g
     sp = jax.vmap(split_state, in_axes=(None, 0, 0, 0, 0, 0))(vp, tb.P_d, v, tb.lam, mode, gear)
     prev = jnp.concatenate([start[None], path[:-1]])
-    sc = jax.vmap(transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0))(
-        vp, prev, path, v, grade, tb.lam, params, tb.brake
-    )
-    sc = jnp.where(mask, sc, 0.0)
+
+    def costs():
+        sc = jax.vmap(transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0))(
+            vp, prev, path, v, grade, tb.lam, params, tb.brake
+        )
+        return jnp.where(mask, sc, 0.0)
+
+    if switch_costs is True:
+        sc = costs()
+    else:
+        sc = jax.lax.cond(switch_costs, costs, lambda: jnp.zeros_like(sp.H))
     Hk = sp.H
     stage = jnp.where(tb.none_feasible, 0.0, Hk * dt)
     cost = jnp.sum(jnp.where(mask, stage, 0.0)) + jnp.sum(sc)
@@ -428,7 +439,7 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params) -> Level1R
 
 # ------------------------------------------------------------------------------ full horizon
 def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
-                 trac=None):
+                 trac=None, switch_costs=True):
     TRACES["level1_full"] += 1
     tb = _tables(vp, P_d, v, grade, lam, dt, params, trac)
     S = tb.stage.shape[1]
@@ -436,7 +447,7 @@ def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params,
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
     r = solve_dp(vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask,
                  fast=fast)
-    return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params)
+    return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params, switch_costs)
 
 
 _level1_full_jit = jax.jit(_level1_full)
