@@ -202,8 +202,7 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery():
 
 PARAMS = sw.SwitchCostParams()
 level1 = jax.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))
-one_plan = jax.jit(lambda lam_t: S.steps_energy(
-    VP, PRED, *(lambda r: (r.mode, r.gear, r.P_b))(level1(lam_t)), 1.0))
+energy = jax.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
 sustain = jax.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
                                                                target))
 
@@ -218,7 +217,8 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     n_dp = [0]
 
     def score(lam_t):  # (held error, what the limits hold) per piece
-        dE = np.asarray(one_plan(jnp.asarray(lam_t)))
+        r = level1(jnp.asarray(lam_t))
+        dE = np.asarray(energy(r.mode, r.gear, r.P_b))
         n_dp[0] += 1
         e = np.bincount(pid, dE, K) - target
         _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max, dE, pid, target)
