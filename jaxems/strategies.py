@@ -458,7 +458,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     trac = l1.traction_table(vp, pred.v, pred.grade, params)  # the same for every lambda_b
     # the DPs in order: the shift's bisection, the two sides, the time split's bisection, the
     # four candidates, the final plan; one loop with one DP in its body, so that the DP
-    # compiles once (at five call sites it took 2.9x the compile time)
+    # compiles once (at five call sites the stage took about twice the compile time)
     p_side = n_bisect
     p_split = p_side + 2
     p_cand = p_split + _split_bisections(T)
