@@ -422,10 +422,20 @@ def _split_bisections(T: int) -> int:
     return int(math.ceil(math.log2(T + 1))) + 1
 
 
+def _sustaining_phases(T: int, n_bisect: int) -> tuple[int, int, int, int]:
+    """Where `sustaining_level1`'s phases start in its sequence of DPs over T steps: the two
+    sides, the time split's bisection, the four candidates, the final plan (the shift's
+    bisection starts at 0)."""
+    p_side = n_bisect
+    p_split = p_side + 2
+    p_cand = p_split + _split_bisections(T)
+    return p_side, p_split, p_cand, p_cand + 4
+
+
 def sustaining_dps(T: int, n_bisect: int = 14) -> int:
     """Full-route Level 1 DPs one `sustaining_level1` call runs over T steps: the shift's
     bisection, the two sides, the time split's bisection, the four candidates, the final plan."""
-    return n_bisect + 2 + _split_bisections(T) + 4 + 1
+    return _sustaining_phases(T, n_bisect)[-1] + 1
 
 
 def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14,
@@ -459,10 +469,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     # the DPs in order: the shift's bisection, the two sides, the time split's bisection, the
     # four candidates, the final plan; one loop with one DP in its body, so that the DP
     # compiles once (at five call sites the stage took about twice the compile time)
-    p_side = n_bisect
-    p_split = p_side + 2
-    p_cand = p_split + _split_bisections(T)
-    p_final = p_cand + 4
+    p_side, p_split, p_cand, p_final = _sustaining_phases(T, n_bisect)
 
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
@@ -470,8 +477,8 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
     end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
 
-    def plans(c):  # what the loop's state decides: the sides and the candidates
-        a, b, held_err, held, t0, t1 = c[:6]
+    def costate(phase, i, c):  # (T,) the costate of DP number i, and then_high (K,)
+        a, b, held_err, held, t0, t1, _ = c
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
@@ -485,42 +492,38 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
             return jnp.where(k < ts[pid], first, then)
 
         cands = jnp.stack([shifted(a), shifted(b), joined(t0), joined(t1)])  # (4, T)
-        return ja, jb, joined, then_high, cands
-
-    def lam_of(i, c, sides):  # (T,) the costate of DP number i
-        a, b, held_err, held, t0, t1 = c[:6]
-        ja, jb, joined, _, cands = sides
         errs, hs = held_err[2:], held[2:]  # (4, K) the candidates'
         near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
         best = jnp.argmin(jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
-        phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_split, p_cand, p_final]))
-        return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb, joined((t0 + t1) // 2),
-                                cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
+        lam_t = jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb, joined((t0 + t1) // 2),
+                                 cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
+        return lam_t, then_high
 
     def step(i, c):
         a, b, held_err, held, t0, t1, _ = c
-        sides = plans(c)
-        lam_t = lam_of(i, c, sides)
+        # 0 the shift's bisection, 1 and 2 the sides, 3 the time split, 4 the candidates,
+        # 5 the final plan
+        phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_split, p_cand, p_final]))
+        lam_t, then_high = costate(phase, i, c)
         # the switching costs along the path only for the final plan, which returns them
-        r = _level1(vp, pred, lam_t, dt, params, fast, trac, i == p_final)
+        r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 5)
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the
         # shift's bisection needs neither; `i` is not batched, so under vmap this stays a cond)
-        e_held = jax.lax.cond(i < p_side, lambda: e,
+        e_held = jax.lax.cond(phase == 0, lambda: e,
                               lambda: held_piece_error(vp, dE, pid, target))
         # the shift: a piece's dE decreases as its shift grows (cheaper battery: discharge)
-        bis = i < p_side
-        pos = e > 0
-        a, b = jnp.where(bis & pos, 0.5 * (a + b), a), jnp.where(bis & ~pos, 0.5 * (a + b), b)
+        up = e > 0
+        m = 0.5 * (a + b)
+        a, b = jnp.where((phase == 0) & up, m, a), jnp.where((phase == 0) & ~up, m, b)
         # the time split: joined(start) is `then` alone, joined(end) `first` alone
-        split = (i >= p_split) & (i < p_cand)
-        m = (t0 + t1) // 2
-        on = (e_held > 0) == sides[3]
-        t0, t1 = jnp.where(split & on, m, t0), jnp.where(split & ~on, m, t1)
+        on = (e_held > 0) == then_high
+        ts = (t0 + t1) // 2
+        t0, t1 = jnp.where((phase == 3) & on, ts, t0), jnp.where((phase == 3) & ~on, ts, t1)
         # the scores of the sides (slots 0, 1) and the candidates (2-5)
-        slot = jnp.where(i < p_split, i - p_side, i - p_cand + 2)
-        keep = ((i >= p_side) & (i < p_split)) | ((i >= p_cand) & (i < p_final))
+        slot = jnp.where(phase < 3, i - p_side, i - p_cand + 2)
+        keep = (phase == 1) | (phase == 2) | (phase == 4)
         held_err = jnp.where(keep, held_err.at[slot].set(e_held), held_err)
         held = jnp.where(keep, held.at[slot].set(jnp.abs(e_held - e)), held)
         return a, b, held_err, held, t0, t1, (r, lam_t)
