@@ -286,9 +286,12 @@ def test_batch_equals_loop_and_no_retrace():
     np.testing.assert_allclose(np.asarray(prod.E_b)[1, 2], np.asarray(
         b.solve_costate(VP.replace(E_b_max=2e6, soc0=0.3), P3[1], V3[1], W3[1], None,
                         DT_H).E_b), rtol=1e-9, atol=1e-6)
-    # new values (vehicle, route, start energy) do not recompile
+    # new values (vehicle, route, start energy) do not recompile, nor do the same values as
+    # NumPy scalars instead of (weakly typed) Python floats
     n0 = b._costate_jit._cache_size()
     b.solve_costate(VP.replace(mass=27e3), P_d2 * 0.9, v2, W3[1], None, 3.0, 0.4e6)
+    b.solve_costate(VP.replace(mass=27e3), P_d2 * 0.9, v2, W3[1], None, np.float64(3.0),
+                    np.float64(0.4e6), E_min=np.float64(0.0), tol_rel=np.float32(1e-3))
     assert b._costate_jit._cache_size() == n0
 
 

@@ -672,10 +672,18 @@ def _validate_levels(vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_p
         e = np.asarray(e, dtype=float)
         if not np.all(np.isfinite(e)) or np.any(e < np.asarray(E_min)) or np.any(e > e_max):
             raise ValueError(f"{name}: must lie within [E_min, E_max] = [{E_min}, {e_max}] J")
-    # one type for every call (float64 arrays, not Python floats, whose weak type would make
-    # jit compile the kernel again for a value passed as a NumPy or JAX scalar)
-    f = lambda x: np.asarray(np.nan if x is None else x, dtype=float)  # noqa: E731
-    return f(E_b0), f(E_b_end), f(E_max), f(lo), f(hi)
+    nan = np.nan
+    return (
+        _f64(nan if E_b0 is None else E_b0), _f64(nan if E_b_end is None else E_b_end),
+        _f64(nan if E_max is None else E_max), _f64(lo), _f64(hi),
+    )
+
+
+def _f64(x):
+    """x as a float64 NumPy value: the one type the public functions pass their scalars to the
+    kernels in (a Python float is weakly typed, and jit compiles once more for it than for a
+    NumPy or JAX scalar of the same value)."""
+    return np.asarray(x, dtype=float)
 
 
 def solve_costate(
@@ -702,8 +710,8 @@ def solve_costate(
         vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces
     )
     return _costate_jit(
-        vp, P_d, v, w, mask, dt, E_b0, E_b_end, np.asarray(E_min, dtype=float), E_max, lo, hi,
-        np.asarray(tol_rel, dtype=float), n_iter=int(n_iter), max_pieces=int(max_pieces),
+        vp, P_d, v, w, mask, dt, E_b0, E_b_end, _f64(E_min), E_max, lo, hi, _f64(tol_rel),
+        n_iter=int(n_iter), max_pieces=int(max_pieces),
     )
 
 
@@ -964,8 +972,7 @@ def level2_horizon(
         vp, E_b0, None, E_min, E_max, lam_bracket, n_iter, max_pieces
     )
     e0 = vp.soc0 * vp.E_b_max if E_b0 is None else E_b0
-    f = lambda x: np.asarray(x, dtype=float)  # noqa: E731  (one type: see _validate_levels)
     return _horizon_jit(
-        vp, P_d, v, w, mask, dt, f(e0), f(E_min), E_maxv, lo, hi, f(tol_rel),
+        vp, P_d, v, w, mask, dt, _f64(e0), _f64(E_min), E_maxv, lo, hi, _f64(tol_rel),
         n_iter=int(n_iter), max_pieces=int(max_pieces),
     )
