@@ -67,8 +67,23 @@ def _opt(route, vp, lambda_t, lam_b, switch_weight=vel.SWITCH_WEIGHT):
     return optimize_velocity(route, vp, lambda_t, lam_b, switch_weight=switch_weight)
 
 
-OPT = jax.jit(_opt)
+def _f64(x):
+    """A scalar as a float64 array: a Python float is weakly typed and a NumPy one is not, and
+    jit compiles once for each; the wrappers below pass every scalar this way (and every
+    argument, defaults included), so that each kernel compiles once for this module."""
+    return np.asarray(x, dtype=float)
+
+
+_OPT = jax.jit(_opt)
+
+
+def OPT(route, vp, lambda_t, lam_b, switch_weight=vel.SWITCH_WEIGHT):
+    return _OPT(route, vp, _f64(lambda_t), _f64(lam_b), _f64(switch_weight))
+
+
 EXACT = jax.jit(eco_cost_exact)
+
+
 @jax.jit
 def _cost_and_grads(route, v, lambda_t, tau):
     """(soft cost, its gradient, the exact cost's gradient, the switching proxy's gradient)."""
@@ -76,7 +91,15 @@ def _cost_and_grads(route, v, lambda_t, tau):
             jax.grad(eco_cost, argnums=2)(route, VP, v, lambda_t, LAM_B, tau),
             jax.grad(eco_cost_exact, argnums=2)(route, VP, v, lambda_t, LAM_B),
             jax.grad(vel.eco_regulariser, argnums=1)(route, v, 1e5))
-MATCH = jax.jit(match_trip_time)
+
+
+_MATCH = jax.jit(match_trip_time)
+
+
+def MATCH(route, vp, target_trip_time, lam_b, overspeed=0.0):
+    return _MATCH(route, vp, _f64(target_trip_time), _f64(lam_b), overspeed=_f64(overspeed))
+
+
 PROJECT = jax.jit(project_speeds)
 PROFILE = jax.jit(velocity_profile)
 BOUNDS = jax.jit(lambda route: speed_bounds(route, VP))
