@@ -205,7 +205,7 @@ def test_vmap_equals_loop():
     vps = VP._replace(mass=masses)
     batched = jax.vmap(run, in_axes=(vehicle_axes(VP, ["mass"]), 0))(vps, lams)
     for b in range(3):
-        one = run(VP.replace(mass=masses[b]), lams[b])
+        one = run(VP.replace(mass=masses[b]), float(lams[b]))  # a float: run's compilation
         np.testing.assert_allclose(np.asarray(batched.final.tot.fuel[b]),
                                    np.asarray(one.final.tot.fuel), rtol=1e-10)
         np.testing.assert_allclose(np.asarray(batched.trace.E_b[b]), np.asarray(one.trace.E_b),
