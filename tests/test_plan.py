@@ -22,12 +22,25 @@ from jaxems.reference import ref_battery_path, ref_plan_energy
 
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
-N = S.steps_for_batch(ROUTE, VP)
-PRED = jax.jit(lambda r, v: S.level3(r, v, 1.0, N))(ROUTE, VP)
-R1 = jax.jit(lambda v, p, lam: S._level1(v, p, lam, 1.0, sw.SwitchCostParams()))(VP, PRED, -2.0)
-T = PRED.v.shape[0]
-MID = int(np.sum(np.asarray(PRED.mask))) // 2
-PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
+PARAMS = sw.SwitchCostParams()
+# Level 3 on the short track, a Level 1 plan at lambda_b = -2 on it, and two pieces (split at
+# MID): set by the module fixture `_short_track`, on first use. At import, every xdist worker
+# computed them while collecting, whether it ran this file or not.
+PRED = R1 = T = MID = PID = None
+level1 = jax.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))  # lam_t: (T,)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _short_track():
+    global PRED, R1, T, MID, PID
+    n = S.steps_for_batch(ROUTE, VP)
+    PRED = jax.jit(lambda r, v: S.level3(r, v, 1.0, n))(ROUTE, VP)
+    T = PRED.v.shape[0]
+    R1 = level1(jnp.full(T, -2.0))  # the compilation test_sustaining_level1_... uses
+    MID = int(np.sum(np.asarray(PRED.mask))) // 2
+    PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
+
+
 trim_vp = jax.jit(lambda vp, target: S.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
                                                           PID, target, 1.0))
 trim = lambda target: trim_vp(VP, target)  # noqa: E731
@@ -200,8 +213,6 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery():
     assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4
 
 
-PARAMS = sw.SwitchCostParams()
-level1 = jax.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))
 energy = jax.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
 sustain = jax.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
                                                                target))
