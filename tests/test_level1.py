@@ -285,9 +285,10 @@ def test_batch_equals_single_and_does_not_recompile():
     for i in range(2):
         for j, m in enumerate((20000.0, 30000.0)):
             for k_, la in enumerate(lam):
-                r = l1.level1_full(
-                    VP.replace(mass=m), P_d[i], v[i], grade[i], la, DT, mask[i], ps.MO, 0, PRM
-                )
+                # lambda_b as a (T,) array: the compilation test_level1_full_equals_numpy_viterbi
+                # made (a scalar compiled level1_full once more)
+                r = l1.level1_full(VP.replace(mass=m), P_d[i], v[i], grade[i], np.full(T, la),
+                                   DT, mask[i], ps.MO, 0, PRM)
                 np.testing.assert_allclose(float(rb.cost[i, j, k_]), float(r.cost), rtol=1e-10)
                 np.testing.assert_array_equal(np.asarray(rb.state[i, j, k_]), np.asarray(r.state))
     n0 = l1.TRACES["level1_batch"]
