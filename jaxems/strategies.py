@@ -287,6 +287,12 @@ def single_piece(T: int, dtype):
     return jnp.zeros(T, jnp.int32), jnp.zeros(1, dtype)
 
 
+def narrow(a, b, m, pos, when=True):
+    """One bisection step on brackets (a, b) with midpoint m: (m, b) where pos, else (a, m);
+    unchanged where `when` is False."""
+    return jnp.where(when & pos, m, a), jnp.where(when & ~pos, m, b)
+
+
 def bisect_pieces(err, a, b, n: int, strict=True):
     """Bisection on every piece at once: err (K,) -> (K,) decreasing in x, brackets a, b: (K,).
     Keeps err(a) > 0 (strict; else >= 0) and err(b) <= 0 (< 0); returns the final (a, b)."""
@@ -295,8 +301,7 @@ def bisect_pieces(err, a, b, n: int, strict=True):
         a, b = c
         m = 0.5 * (a + b)
         e = err(m)
-        pos = jnp.where(strict, e > 0, e >= 0)
-        return jnp.where(pos, m, a), jnp.where(pos, b, m)
+        return narrow(a, b, m, jnp.where(strict, e > 0, e >= 0))
 
     return jax.lax.fori_loop(0, n, bis, (a, b))
 
@@ -514,13 +519,9 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         e_held = jax.lax.cond(phase == 0, lambda: e,
                               lambda: held_piece_error(vp, dE, pid, target))
         # the shift: a piece's dE decreases as its shift grows (cheaper battery: discharge)
-        up = e > 0
-        m = 0.5 * (a + b)
-        a, b = jnp.where((phase == 0) & up, m, a), jnp.where((phase == 0) & ~up, m, b)
+        a, b = narrow(a, b, 0.5 * (a + b), e > 0, phase == 0)
         # the time split: joined(start) is `then` alone, joined(end) `first` alone
-        on = (e_held > 0) == then_high
-        ts = (t0 + t1) // 2
-        t0, t1 = jnp.where((phase == 3) & on, ts, t0), jnp.where((phase == 3) & ~on, ts, t1)
+        t0, t1 = narrow(t0, t1, (t0 + t1) // 2, (e_held > 0) == then_high, phase == 3)
         # the scores of the sides (slots 0, 1) and the candidates (2-5)
         slot = jnp.where(phase < 3, i - p_side, i - p_cand + 2)
         keep = (phase == 1) | (phase == 2) | (phase == 4)
