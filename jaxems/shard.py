@@ -47,6 +47,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 
+from .xla import jit
+
 AXIS = "batch"  # name of the mesh axis the batch is split over
 _FLAG = "--xla_force_host_platform_device_count"
 _FLAG_RE = re.compile(r"--xla_force_host_platform_device_count=\S*")
@@ -147,7 +149,8 @@ def chunk_plan(B: int, n_devices: int, chunk: int | None) -> tuple[int, int]:
 
 
 @functools.lru_cache(maxsize=128)
-def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool):
+def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool,
+             elemental: bool = True):
     """The jitted program for one (fn, chunk, devices); jit adds its own per-shape cache."""
     n = len(devices)
 
@@ -171,7 +174,7 @@ def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool)
                                 out_specs=PartitionSpec(AXIS), check_vma=False)(shared, xs)
         return jax.tree_util.tree_map(lambda a: a[:B], out)
 
-    return jax.jit(run)
+    return jit(run, elemental=elemental)
 
 
 def _check_batch(args) -> int:
@@ -196,7 +199,7 @@ def _check_batch(args) -> int:
 
 
 def map_batch(fn: Callable, args: Any, *, shared: Any = None, chunk: int | None = None,
-              devices: int | Sequence | None = None) -> Any:
+              devices: int | Sequence | None = None, elemental: bool = True) -> Any:
     """Apply `fn` to every item of a batch, split over devices in chunks of at most `chunk`.
 
     fn: a pure function of ONE item, ``fn(item)``, or ``fn(shared, item)`` when `shared` is
@@ -208,6 +211,7 @@ def map_batch(fn: Callable, args: Any, *, shared: Any = None, chunk: int | None 
     None vmaps each device's whole share at once.
     devices: None (all devices of the default backend), a count (the first n), or a sequence
     of devices.
+    elemental: compile with XLA's elemental CPU emitters (`xla.jit`; False: XLA's defaults).
     Returns fn's output pytree with a leading axis B on every leaf: out[i] = fn(args[i]).
     Repeated calls with the same fn object, chunk, devices and argument shapes reuse one
     compilation.
@@ -217,7 +221,8 @@ def map_batch(fn: Callable, args: Any, *, shared: Any = None, chunk: int | None 
         raise ValueError(f"map_batch: chunk must be a whole number >= 1 or None (got {chunk!r})")
     _check_batch(args)
     devs = _resolve_devices(devices)
-    prog = _program(fn, None if chunk is None else int(chunk), devs, shared is not None)
+    prog = _program(fn, None if chunk is None else int(chunk), devs, shared is not None,
+                    bool(elemental))
     if len(devs) == 1 and devices is not None:
         args, shared = jax.device_put((args, shared), devs[0])
     return prog(shared if shared is not None else (), args)

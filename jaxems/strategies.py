@@ -62,6 +62,7 @@ from .levels import powersplit as ps
 from .levels import velocity as l3
 from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, with_overrides
 from .route import Route
+from .xla import jit
 
 STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound",
               "multilevel-eco")
@@ -1118,7 +1119,7 @@ def _kernel(strategy: str, dt: float, n_steps: int, opts: Options):
     return lambda route, vp, params: fn(route, vp, dt, n_steps, opts, params)
 
 
-@jax.jit(static_argnames=("strategy", "dt", "n_steps", "opts"))
+@jit(static_argnames=("strategy", "dt", "n_steps", "opts"))
 def _run_one(route, vp, params, *, strategy, dt, n_steps, opts):
     return _kernel(strategy, dt, n_steps, opts)(route, vp, params)
 
@@ -1131,12 +1132,12 @@ def _item_fn(strategy: str, dt: float, n_steps: int, opts: Options):
     return lambda shared, vp: f(shared[0], vp, shared[1]).metrics
 
 
-_profile_batch = jax.jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
+_profile_batch = jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
 
 
 @functools.lru_cache(maxsize=16)
 def _eco_trip_fn(dt: float, n_steps: int, opts: Options):
-    return jax.jit(jax.vmap(lambda route, vp: eco_speed(route, vp, dt, n_steps, opts)[0].trip_time,
+    return jit(jax.vmap(lambda route, vp: eco_speed(route, vp, dt, n_steps, opts)[0].trip_time,
                             in_axes=(None, 0)))
 
 
@@ -1192,6 +1193,9 @@ CHUNK = {"multilevel": 4, "multilevel-eco": 4}
 DEFAULT_CHUNK = 64
 
 
+BATCH_ELEMENTAL = {name: name != "conventional" for name in STRATEGIES}
+
+
 def default_chunk(strategy: str) -> int:
     """`simulate_batch`'s chunk (vehicles vmapped at once per device) for ``chunk="auto"``."""
     return CHUNK.get(check_strategy(strategy), DEFAULT_CHUNK)
@@ -1224,7 +1228,10 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
     params = switching or sw.SwitchCostParams()
     fn = _item_fn(strategy, dt, int(n_steps), opts)
-    m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices)
+    # the conventional truck's batch runs faster with XLA's default CPU emitters; every other
+    # batch as fast, in half the memory, with the elemental ones (`xla`)
+    m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices,
+                        elemental=BATCH_ELEMENTAL[strategy])
     return _fields(m, VehicleParams(*(np.asarray(x) for x in vehicles)))
 
 

@@ -88,6 +88,7 @@ import numpy as np
 
 from .. import powertrain as pt
 from ..params import VehicleParams
+from ..xla import jit
 from .powersplit import mode_gear_split, modes_at_gear
 
 # ----------------------------------------------------------------------------- status bit flags
@@ -630,7 +631,7 @@ def costate_kernel(
     )
 
 
-_costate_jit = jax.jit(costate_kernel, static_argnames=("n_iter", "max_pieces"))
+_costate_jit = jit(costate_kernel, static_argnames=("n_iter", "max_pieces"))
 
 
 def _validate_route(P_d, v, w, mask, dt, batch: bool):
@@ -726,14 +727,14 @@ def bisect_costate(vp, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_end=None, **
     )
 
 
-@partial(jax.jit, static_argnames=("n_iter", "max_pieces"))
+@jit(static_argnames=("n_iter", "max_pieces"))
 def _batch_jit(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol, *, n_iter,
                max_pieces):
     f = partial(costate_kernel, n_iter=n_iter, max_pieces=max_pieces)
     return jax.vmap(f)(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol)
 
 
-@partial(jax.jit, static_argnames=("n_iter", "max_pieces"))
+@jit(static_argnames=("n_iter", "max_pieces"))
 def _product_jit(vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, tol, *, n_iter,
                  max_pieces):
     f = partial(costate_kernel, n_iter=n_iter, max_pieces=max_pieces)
@@ -819,7 +820,7 @@ class Switching(NamedTuple):
     feasible: jax.Array
 
 
-@jax.jit
+@jit
 def minimal_switching(dE_plus, dE_minus, E_b0, E_b_end, E_min, E_max, tol=1.0) -> Switching:
     """I2b (section 5.2.2, Figures 14-15): the fewest switches between two trajectories.
 
@@ -949,7 +950,7 @@ def horizon_kernel(
     )
 
 
-_horizon_jit = jax.jit(horizon_kernel, static_argnames=("n_iter", "max_pieces"))
+_horizon_jit = jit(horizon_kernel, static_argnames=("n_iter", "max_pieces"))
 
 
 def level2_horizon(

@@ -48,6 +48,7 @@ import numpy as np
 from .. import dp
 from .. import switching as sw
 from ..params import VehicleParams
+from ..xla import jit
 from .powersplit import (
     ENGINE_CONNECTED,
     MO,
@@ -450,7 +451,7 @@ def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params,
     return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params, switch_costs)
 
 
-_level1_full_jit = jax.jit(_level1_full)
+_level1_full_jit = jit(_level1_full)
 
 
 def _check_inputs(vp, P_d, v, grade, mask):
@@ -539,7 +540,7 @@ def _level1_mpc(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, 
     return _result(vp, tb, path, start, v, grade, dt, mask, params)
 
 
-_level1_mpc_jit = jax.jit(_level1_mpc, static_argnames=("horizon",))
+_level1_mpc_jit = jit(_level1_mpc, static_argnames=("horizon",))
 
 
 def level1_mpc(
@@ -609,7 +610,7 @@ def _level1_batch(vps, P_d, v, grade, mask, lam, dt, init_mode, init_gear, param
     return g(vps, tb, path, start, v, grade, mask)
 
 
-_level1_batch_jit = jax.jit(_level1_batch)
+_level1_batch_jit = jit(_level1_batch)
 
 
 def level1_batch(

@@ -83,6 +83,7 @@ import numpy as np
 from .. import powertrain as pt
 from ..params import VehicleParams, stack_vehicles
 from ..route import Route, pad_routes
+from ..xla import jit
 from .powersplit import mode_gear_split
 
 V_CRAWL = 0.5  # m/s: lowest speed away from stops
@@ -390,16 +391,16 @@ def _total_work(route: Route, vp: VehicleParams, prof: Profile):
 
 
 # ----------------------------------------------------------------------------- host wrappers
-_profile_jit = jax.jit(velocity_profile)
-_resample_jit = jax.jit(resample, static_argnames=("n_steps",))
-_profile_vmap = jax.jit(jax.vmap(velocity_profile, in_axes=(0, 0, 0)))
+_profile_jit = jit(velocity_profile)
+_resample_jit = jit(resample, static_argnames=("n_steps",))
+_profile_vmap = jit(jax.vmap(velocity_profile, in_axes=(0, 0, 0)))
 
 
 def _resample_batch(routes, vehicles, profs, dt, n_steps):
     return jax.vmap(lambda r, v, p: resample(r, v, p, dt, n_steps))(routes, vehicles, profs)
 
 
-_resample_vmap = jax.jit(_resample_batch, static_argnames=("n_steps",))
+_resample_vmap = jit(_resample_batch, static_argnames=("n_steps",))
 
 
 def steps_for(trip_time: float, dt: float, bucket: int = STEP_BUCKET) -> int:
@@ -1186,7 +1187,7 @@ def _optimize_batch(routes, vehicles, lambda_t, lam_b, w, learning_rate, final_l
     return jax.vmap(one)(routes, vehicles, lambda_t, lam_b, w)
 
 
-_optimize_vmap = jax.jit(_optimize_batch, static_argnames=("n_steps", "table_size"))
+_optimize_vmap = jit(_optimize_batch, static_argnames=("n_steps", "table_size"))
 
 
 def optimize_velocity_batch(
