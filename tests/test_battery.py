@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import itertools
 
-import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import powertrain as pt
+from jaxems import xla
 from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
@@ -25,8 +25,8 @@ from jaxems.reference import ref_dp, ref_end, ref_gears
 
 VP = load_vehicle()
 W1100 = 1100 * RPM
-_mgs = jax.jit(mode_gear_split)
-_steps = jax.jit(b.level2_steps)
+_mgs = xla.jit(mode_gear_split)
+_steps = xla.jit(b.level2_steps)
 
 
 def make_route(vp, segs, T=None):
@@ -41,7 +41,7 @@ def make_route(vp, segs, T=None):
 # -------------------------------------------------------------------------------- kernels
 def test_modes_at_gear_equals_full_table():
     rng = np.random.default_rng(0)
-    f = jax.jit(b.modes_at_gear)
+    f = xla.jit(b.modes_at_gear)
     for _ in range(12):
         P_d, v = rng.uniform(-150e3, 300e3), rng.uniform(0.5, 25)
         lam, g = rng.uniform(-4, -0.5), int(rng.integers(0, 12))
@@ -53,7 +53,7 @@ def test_modes_at_gear_equals_full_table():
 def test_gear_rule_matches_reference():
     P_d, v = make_route(VP, [(40, 3.0, 0.0), (40, 12.0, 0.03), (40, 22.0, -0.02)])
     w = np.linspace(700, 1700, T_H) * RPM
-    gear, ok = jax.jit(b.select_gears)(VP, P_d, v, w, np.ones(T_H, bool))
+    gear, ok = xla.jit(b.select_gears)(VP, P_d, v, w, np.ones(T_H, bool))
     np.testing.assert_array_equal(np.asarray(gear), ref_gears(VP, P_d, v, w))
     assert bool(np.all(ok))
 

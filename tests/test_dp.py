@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxems import dp
+from jaxems import dp, xla
 
 S, T = 4, 5
 
@@ -55,7 +55,7 @@ def random_instance(seed, n_s=S, n_t=T, p_inf=0.2):
     return stage, C, init, mask
 
 
-@jax.jit
+@xla.jit
 def _solve(stage, C, init, mask):
     r = dp.viterbi(stage, dp.dense_transition(C, per_step=True), init, mask)
     s0, c0 = dp.viterbi_first(stage, dp.dense_transition(C, per_step=True), init, mask)
@@ -81,7 +81,7 @@ def test_viterbi_equals_enumeration(seed):
     assert int(s0) == seq[1]
 
 
-@jax.jit
+@xla.jit
 def _solve_const(stage, C, init):
     return dp.viterbi(stage, dp.dense_transition(C), init)
 
@@ -102,7 +102,7 @@ def test_batch_last_axes_equal_single_solves():
     C = np.stack([x[1] for x in inst], -1)
     init = np.stack([x[2] for x in inst], -1)
     mask = np.stack([x[3] for x in inst], -1)
-    rb = jax.jit(lambda *a: dp.viterbi(a[0], dp.dense_transition(a[1], per_step=True), a[2], a[3]))(
+    rb = xla.jit(lambda *a: dp.viterbi(a[0], dp.dense_transition(a[1], per_step=True), a[2], a[3]))(
         stage, C, init, mask
     )
     for i, (st_, C_, in_, m_) in enumerate(inst):
@@ -130,7 +130,7 @@ def test_large_state_count_uses_reduction():
     stage = rng.uniform(0, 10, (n_t, n_s))
     C = rng.uniform(0, 5, (n_s, n_s))
     init = rng.uniform(0, 1, n_s)
-    r = jax.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))(stage, C, init)
+    r = xla.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))(stage, C, init)
     V = init.copy()
     for k in range(n_t):
         V = np.min(V[:, None] + C, axis=0) + stage[k]
@@ -141,5 +141,5 @@ def test_large_state_count_uses_reduction():
 def test_float32_pointers_and_inf():
     stage = np.array([[np.inf, 1.0], [np.inf, np.inf]], np.float32)
     C = np.zeros((2, 2), np.float32)
-    r = jax.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))(stage, C, np.zeros(2))
+    r = xla.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))(stage, C, np.zeros(2))
     assert not bool(r.feasible)

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from jaxems import xla
 from jaxems.levels import velocity as vel
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.levels.velocity import (
@@ -74,17 +75,17 @@ def _f64(x):
     return np.asarray(x, dtype=float)
 
 
-_OPT = jax.jit(_opt)
+_OPT = xla.jit(_opt)
 
 
 def OPT(route, vp, lambda_t, lam_b, switch_weight=vel.SWITCH_WEIGHT):
     return _OPT(route, vp, _f64(lambda_t), _f64(lam_b), _f64(switch_weight))
 
 
-EXACT = jax.jit(eco_cost_exact)
+EXACT = xla.jit(eco_cost_exact)
 
 
-@jax.jit
+@xla.jit
 def _cost_and_grads(route, v, lambda_t, tau):
     """(soft cost, its gradient, the exact cost's gradient, the switching proxy's gradient)."""
     return (eco_cost(route, VP, v, lambda_t, LAM_B, tau),
@@ -93,20 +94,20 @@ def _cost_and_grads(route, v, lambda_t, tau):
             jax.grad(vel.eco_regulariser, argnums=1)(route, v, 1e5))
 
 
-_MATCH = jax.jit(match_trip_time)
+_MATCH = xla.jit(match_trip_time)
 
 
 def MATCH(route, vp, target_trip_time, lam_b, overspeed=0.0):
     return _MATCH(route, vp, _f64(target_trip_time), _f64(lam_b), overspeed=_f64(overspeed))
 
 
-PROJECT = jax.jit(project_speeds)
-PROFILE = jax.jit(velocity_profile)
-BOUNDS = jax.jit(lambda route: speed_bounds(route, VP))
-MGS = jax.jit(lambda P_d, v, lam: mode_gear_split(VP, P_d, v, lam).H)
+PROJECT = xla.jit(project_speeds)
+PROFILE = xla.jit(velocity_profile)
+BOUNDS = xla.jit(lambda route: speed_bounds(route, VP))
+MGS = xla.jit(lambda P_d, v, lam: mode_gear_split(VP, P_d, v, lam).H)
 
 
-@jax.jit
+@xla.jit
 def _h_min(P_d, v):
     H = jax.vmap(mode_gear_split, in_axes=(None, 0, 0, None))(VP, P_d, v, LAM_B).H
     return soft_min_hamiltonian(H, P_d, VP, None)
@@ -271,8 +272,8 @@ def test_min_plus_scan_matches_loop():
 
 
 # --------------------------------------------------------------- soft minimum and gradients
-SOFT = jax.jit(soft_min_hamiltonian)
-SOFT_GRAD = jax.jit(jax.grad(lambda H, P, tau: soft_min_hamiltonian(H, P, VP, tau), (0, 1)))
+SOFT = xla.jit(soft_min_hamiltonian)
+SOFT_GRAD = xla.jit(jax.grad(lambda H, P, tau: soft_min_hamiltonian(H, P, VP, tau), (0, 1)))
 
 
 @settings(max_examples=30)

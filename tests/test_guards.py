@@ -1,12 +1,12 @@
 """Guards B1..B5 (eqs. 37-41, derived again): equal Hamiltonians at each guard, and the
 closed-form mode map against a brute-force minimisation over a fine P_b grid on both sides."""
 
-import jax
 import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from jaxems import xla
 from jaxems.levels import powersplit as ps
 from jaxems.params import RPM, load_vehicle
 
@@ -14,7 +14,7 @@ BASE = load_vehicle()
 GEAR = 5  # the gear whose speed we place at w
 
 
-@jax.jit
+@xla.jit
 def _split_and_guards(vp, P_d, v, lam):
     w = vp.gear_ratio[GEAR] * vp.r_d * v
     s = ps.mode_gear_split(vp, P_d, v, lam)

@@ -7,7 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from jaxems import dp, stack_vehicles
+from jaxems import dp, stack_vehicles, xla
 from jaxems import powertrain as pt
 from jaxems import switching as sw
 from jaxems.levels import level1 as l1
@@ -38,7 +38,7 @@ def synthetic_route(T=T, seed=0):
 
 
 # ------------------------------------------------------------------- structured relaxation
-@jax.jit
+@xla.jit
 def _relax_all(vp, V, v, grade, lam, prm):
     x = l1.transition_inputs(vp, v, grade, lam, prm)
     k = l1.transition_consts(vp, prm.averaged)
@@ -82,9 +82,9 @@ def test_structured_relaxations_equal_dense(v, grade, lam, averaged, weight, dts
 
 
 # ----------------------------------------------------------------------- full horizon DP
-_cost_mats = jax.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None, 0)))
-_htab = jax.jit(ps.hamiltonian_table)
-_tcost = jax.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0)))
+_cost_mats = xla.jit(jax.vmap(sw.switch_cost_matrix, in_axes=(None, 0, 0, 0, None, 0)))
+_htab = xla.jit(ps.hamiltonian_table)
+_tcost = xla.jit(jax.vmap(l1.transition_cost, in_axes=(None, 0, 0, 0, 0, 0, None, 0)))
 
 
 def _brake(vp, P_d, v, lam):
@@ -158,7 +158,7 @@ def test_braking_loss_matches_a_loop():
     assert np.any(got > 0)
 
 
-_bloss = jax.jit(l1.braking_loss)
+_bloss = xla.jit(l1.braking_loss)
 
 
 @settings(max_examples=30)
@@ -202,7 +202,7 @@ def test_switching_costs_reduce_switching():
     np.testing.assert_allclose(float(free.cost), float(np.sum(Hs) * DT), rtol=1e-12)
 
 
-@jax.jit
+@xla.jit
 def _full_and_merged(vp, P_d, v, grade, lam):
     tb = l1._tables(vp, P_d, v, grade, lam, DT, PRM)
     init = l1._init_cost(jnp.int32(ps.MO), jnp.int32(0), 48, 12, tb.stage.dtype)

@@ -3,7 +3,6 @@ targets, the plan's battery energy within the limits, and the plant-drift compen
 (strategies.trim_battery_power, piece_targets, battery_path, compensate), on the short track at
 25 t against plain loops."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from jaxems import plant as pl
 from jaxems import powertrain as pt
 from jaxems import strategies as S
 from jaxems import switching as sw
+from jaxems import xla
 from jaxems.io import load_route
 from jaxems.levels import battery as l2
 from jaxems.levels import powersplit as ps
@@ -27,24 +27,24 @@ PARAMS = sw.SwitchCostParams()
 # MID): set by the module fixture `_short_track`, on first use. At import, every xdist worker
 # computed them while collecting, whether it ran this file or not.
 PRED = R1 = T = MID = PID = None
-level1 = jax.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))  # lam_t: (T,)
+level1 = xla.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))  # lam_t: (T,)
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _short_track():
     global PRED, R1, T, MID, PID
     n = S.steps_for_batch(ROUTE, VP)
-    PRED = jax.jit(lambda r, v: S.level3(r, v, 1.0, n))(ROUTE, VP)
+    PRED = xla.jit(lambda r, v: S.level3(r, v, 1.0, n))(ROUTE, VP)
     T = PRED.v.shape[0]
     R1 = level1(jnp.full(T, -2.0))  # the compilation test_sustaining_level1_... uses
     MID = int(np.sum(np.asarray(PRED.mask))) // 2
     PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
 
 
-trim_vp = jax.jit(lambda vp, target: S.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
+trim_vp = xla.jit(lambda vp, target: S.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
                                                           PID, target, 1.0))
 trim = lambda target: trim_vp(VP, target)  # noqa: E731
-path = jax.jit(S.battery_path)
+path = xla.jit(S.battery_path)
 
 
 def loop_range(k):
@@ -213,8 +213,8 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery():
     assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4
 
 
-energy = jax.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
-sustain = jax.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
+energy = xla.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
+sustain = xla.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
                                                                target))
 
 

@@ -1,6 +1,5 @@
 """Plant: energy balance, stops, battery limits, open driveline, vmap == loop."""
 
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +10,7 @@ from hypothesis import strategies as st
 
 from jaxems import plant as P
 from jaxems import reference as R
+from jaxems import xla
 from jaxems.levels import powersplit as ps
 from jaxems.levels.velocity import predict_velocity
 from jaxems.params import load_vehicle, vehicle_axes
@@ -38,7 +38,7 @@ def greedy(lam, cstate, vp, obs):
     return cstate, P.Command(mode=i // n, gear=i % n, lam=lam, P_b=jnp.nan)
 
 
-@partial(jax.jit, static_argnames="end_cap")
+@xla.jit(static_argnames="end_cap")
 def run(vp, lam, end_cap=True):
     track = P.make_track(ROUTE, PRED, end_cap)
     return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
@@ -113,7 +113,7 @@ def engine_first(catch_up, cstate, vp, obs):
     return cstate, cmd._replace(P_b=jnp.zeros(()), catch_up=catch_up)
 
 
-@jax.jit
+@xla.jit
 def run_planned(catch_up):
     track = P.make_track(ROUTE, PRED)
     return P.run_plant(VP, track, engine_first, catch_up, jnp.zeros(()), ps.MO, 0, N_PLANT)
@@ -139,7 +139,7 @@ def fixed_gear(gear, cstate, vp, obs):
     return cstate, P.Command(mode=ps.ME, gear=gear, lam=-2.2, P_b=jnp.nan)
 
 
-@jax.jit
+@xla.jit
 def run_fixed_gear(gear):
     track = P.make_track(ROUTE, PRED)
     return P.run_plant(VP, track, fixed_gear, gear, jnp.zeros(()), ps.MO, 0, N_PLANT)

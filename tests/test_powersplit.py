@@ -1,19 +1,19 @@
 """Level 1 split kernel: P_b* of every (mode, gear) against a brute-force search over a fine
 P_b grid within the limits (plain NumPy model), and the explicit Table 6 solution."""
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from jaxems import xla
 from jaxems.levels import powersplit as ps
 from jaxems.params import RPM, load_vehicle
 from jaxems.reference import ref_split
 
 VP = load_vehicle()
 CONV = VP.conventional()
-split_j = jax.jit(ps.mode_gear_split)
+split_j = xla.jit(ps.mode_gear_split)
 
 def _check(vp, P_d, v, lam):
     s = split_j(vp, P_d, v, lam)
@@ -82,7 +82,7 @@ def test_table6_explicit_solution(P_d, rpm, lam):
 def test_optimal_mode_gear_is_the_table_minimum():
     P_d = jnp.array([11e3, 113e3, -192e3, 215e3, -90e3])
     v = jnp.full(5, 25 / 3.6)
-    tab = jax.jit(ps.hamiltonian_table)(VP, P_d, v, -1.97)
+    tab = xla.jit(ps.hamiltonian_table)(VP, P_d, v, -1.97)
     Hs, m, g = ps.optimal_mode_gear(tab)
     H = np.asarray(tab.H)
     for k in range(5):

@@ -4,13 +4,13 @@ the reference's own building blocks (refined split search, Viterbi loop) against
 
 import itertools
 
-import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import reference as ref
+from jaxems import xla
 from jaxems.io import load_route
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
@@ -20,8 +20,8 @@ from jaxems.switching import SwitchCostParams
 VP = load_vehicle()
 PRM = SwitchCostParams()
 T = 512  # one static step count for both routes: one compilation
-_plan = jax.jit(ref.kernel_plan, static_argnames=("dt", "n_steps", "n_iter_l2"))
-_split = jax.jit(ps.mode_gear_split)
+_plan = xla.jit(ref.kernel_plan, static_argnames=("dt", "n_steps", "n_iter_l2"))
+_split = xla.jit(ps.mode_gear_split)
 
 # standing start, climbs and descents, a stop in the middle, a standing end
 STOPS = route_from_rows(

@@ -14,11 +14,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import strategies as S
+from jaxems import xla
 from jaxems.io import load_route
 from jaxems.params import load_vehicle, stack_vehicles
 
 VP = load_vehicle().replace(mass=25000.0)
-LEVEL3 = jax.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
+LEVEL3 = xla.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 
 
@@ -133,10 +134,10 @@ def test_mpc_omega_is_the_recuperation_gear_on_steady_descents(runs):
     from jaxems.levels import powersplit as ps
 
     pred = runs["multilevel-mpc"].prediction
-    w = np.asarray(jax.jit(S.mpc_omega)(VP, pred))
+    w = np.asarray(xla.jit(S.mpc_omega)(VP, pred))
     P_d, v, acc = np.asarray(pred.P_d), np.asarray(pred.v), np.asarray(pred.a)
     # every step's (mode, gear) table at once; the rest is a loop over steps and gears
-    sp = jax.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))(VP, P_d, v, -2.0)
+    sp = xla.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))(VP, P_d, v, -2.0)
     feasible, P_b = np.asarray(sp.feasible), np.asarray(sp.P_b)
     n_descent = n_more = 0
     for k in range(len(v)):
@@ -194,10 +195,10 @@ def test_dp_bound_grid_refinement():
     n = S.steps_for_batch(route, VP)
     pred = LEVEL3(route, VP, 1.0, n)
     opts = S.Options()
-    tab = jax.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts,
+    tab = xla.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts,
                                                           sw.SwitchCostParams())
     E0 = float(VP.soc0 * VP.E_b_max)
-    fuel, dp = [], jax.jit(S.bound_dp, static_argnums=4)
+    fuel, dp = [], xla.jit(S.bound_dp, static_argnums=4)
     for n_E in (101, 401):
         bp = dp(VP, pred, tab, E0, n_E, opts.dp_penalty)
         dE = float(bp.E_end) - E0

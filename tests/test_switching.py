@@ -2,20 +2,20 @@
 the dense cost matrix against the NumPy reference (`jaxems.reference`), and the open-driveline
 event against a time-stepped simulation."""
 
-import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import switching as sw
+from jaxems import xla
 from jaxems.levels import powersplit as ps
 from jaxems.params import RPM, load_vehicle
 from jaxems.reference import ref_cost_matrix
 
 VP = load_vehicle()
 PRM = sw.SwitchCostParams()
-cost_matrix_j = jax.jit(sw.switch_cost_matrix)
+cost_matrix_j = xla.jit(sw.switch_cost_matrix)
 
 PAPER_A1, PAPER_A1_AVG = sw.PAPER_A1, sw.PAPER_A1_AVG
 

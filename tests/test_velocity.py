@@ -2,12 +2,12 @@
 
 import math
 
-import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from jaxems import xla
 from jaxems.io import load_route
 from jaxems.levels import velocity as vel
 from jaxems.levels.velocity import (
@@ -289,7 +289,7 @@ def test_new_vehicle_values_do_not_recompile():
         traces.append(1)
         return velocity_profile(route, vp, w)
 
-    f = jax.jit(counted)
+    f = xla.jit(counted)
     N = MIXED.grade.shape[0]
     for mass, v0 in ((20000.0, 85 * KMH), (31000.0, 70 * KMH), (9000.0, 50 * KMH)):
         vp = VP.replace(mass=mass, v_cruise=v0)
