@@ -6,7 +6,7 @@
                                      [--scaling [--scaling-strategy conventional[,..]]
                                       [--scaling-batch 64] [--scaling-lengths 1,2,4]
                                       [--scaling-batches 64,128,...,4096]]
-                                     [--in-process]
+                                     [--emitters library|elemental|fusion] [--in-process]
 
 Each measurement runs in its own Python subprocess (so that peak_rss_MB is that run's own
 resident high-water mark and the device count can differ between runs). In it `batch` vehicle
@@ -32,6 +32,10 @@ Paths:
   in one vmap on one device (the path before sharding), in a process with one device.
   `--compare-plain` measures both and reports speedup_vs_plain and the largest relative
   difference of fuel_J between the paths.
+
+Both paths compile the batch program as `simulate_batch` does (`strategies.BATCH_ELEMENTAL`: XLA's
+elemental CPU emitters for every strategy but the conventional truck, see `jaxems.xla`);
+`--emitters elemental` or `fusion` compiles every strategy's with one of them, to compare.
 
 With --json one object on stdout:
 
@@ -166,6 +170,9 @@ def measure(spec: dict) -> dict:
     vps = vehicles(B, dtype)
     n_steps = st.steps_for_batch(route, vps)
 
+    if spec.get("emitters", "library") != "library":  # one XLA CPU code generator for all
+        st.BATCH_ELEMENTAL[name] = spec["emitters"] == "elemental"
+    elemental = getattr(st, "BATCH_ELEMENTAL", {}).get(name)  # None: code before xla.jit
     opts = st.Options()
     if hasattr(st, "resolve_options"):  # static choices made from the vehicles, as
         opts = st.resolve_options(opts, vps)  # simulate_batch makes them
@@ -181,7 +188,8 @@ def measure(spec: dict) -> dict:
             return kern(shared[0], vp, shared[1]).metrics
 
         def call():
-            m = map_batch(fn, vps, shared=(route, params), chunk=spec["chunk"])
+            kw = {} if elemental is None else {"elemental": elemental}
+            m = map_batch(fn, vps, shared=(route, params), chunk=spec["chunk"], **kw)
             return st._fields(m, vp_host)
 
     compile_events = []
@@ -210,7 +218,7 @@ def measure(spec: dict) -> dict:
         "mode": spec["mode"], "strategy": name, "batch": B, "tile": spec["tile"],
         "devices": len(jax.devices()), "chunk": spec["chunk"] if spec["mode"] != "plain"
         else None, "n_steps": int(n_steps), "length_m": float(np.asarray(route.length)),
-        "configs_per_s": B / med, "median_s": med, "s_per_config": med / B,
+        "elemental": elemental, "configs_per_s": B / med, "median_s": med, "s_per_config": med / B,
         "compile_s": compile_s, "first_s": first, "times_s": times,
         "cpu_s_per_config": cpu / (B * len(times)), "cores_busy": cpu / sum(times),
         "busiest_threads_cpu_s": busiest,
@@ -343,6 +351,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scaling-batch", type=int, default=64)
     ap.add_argument("--scaling-lengths", default="1,2,4")
     ap.add_argument("--scaling-batches", default=DEFAULT_BATCHES)
+    ap.add_argument("--emitters", choices=("library", "elemental", "fusion"), default="library",
+                    help="XLA CPU code generator of the batch program: the library's choice "
+                    "per strategy (strategies.BATCH_ELEMENTAL) or one for every strategy")
     ap.add_argument("--in-process", action="store_true",
                     help="no subprocesses (peak RSS then accumulates over runs)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -359,7 +370,7 @@ def main(argv=None) -> int:
     if args.in_process and len(set(args.devices_list)) > 1:
         ap.error("--in-process measures one device count (the backend starts once)")
     base = {"route": args.route, "tile": 1, "batch": args.batch, "chunk": args.chunk,
-            "precision": args.precision, "repeats": args.repeats}
+            "precision": args.precision, "repeats": args.repeats, "emitters": args.emitters}
     out = {"route": args.route, "batch": args.batch, "precision": args.precision,
            "devices": args.devices_list, "chunk": args.chunk,
            "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
