@@ -34,8 +34,9 @@ Paths:
   difference of fuel_J between the paths.
 
 Both paths compile the batch program as `simulate_batch` does (`strategies.BATCH_ELEMENTAL`: XLA's
-elemental CPU emitters for every strategy but the conventional truck, see `jaxems.xla`);
-`--emitters elemental` or `fusion` compiles every strategy's with one of them, to compare.
+elemental CPU emitters for every strategy but the conventional truck, the MPC and the
+eco-driving; see `jaxems.xla`). `--emitters elemental` or `fusion` compiles every strategy's
+batch with one of them, to compare.
 
 With --json one object on stdout:
 

@@ -1119,11 +1119,10 @@ def _kernel(strategy: str, dt: float, n_steps: int, opts: Options):
     return lambda route, vp, params: fn(route, vp, dt, n_steps, opts, params)
 
 
-# XLA's CPU code generator per strategy (`xla`, measured: README, "Compilation"): the elemental
-# emitters compile one run in 15-25 % less time and run it as fast, except the MPC's and the
-# eco-driving's (no faster to compile, 18-26 % slower to run); a batch of conventional trucks runs
-# 18 % faster with XLA's default emitters, the other batches as fast in half the memory with the
-# elemental ones
+# XLA's CPU code generator per strategy (`xla`; measured, README "Compilation"): the elemental
+# emitters compile a run in up to 25 % less time and run it as fast, but the MPC and the
+# eco-driving run 5-26 % slower with them and a batch of conventional trucks 3-30 % slower; those
+# keep XLA's default emitters. The other batches run as fast in about half the memory.
 SINGLE_ELEMENTAL = {name: name not in ("multilevel-mpc", "multilevel-eco") for name in STRATEGIES}
 BATCH_ELEMENTAL = {name: SINGLE_ELEMENTAL[name] and name != "conventional" for name in STRATEGIES}
 

@@ -3,13 +3,12 @@
 XLA's CPU backend generates the machine code of each fused kernel with one of two code
 generators: its newer MLIR fusion emitters (XLA's default) or its older elemental emitters
 (compiler option ``xla_cpu_use_fusion_emitters=False``). jaxems' programs are long chains of
-small fusions inside loops (Level 2's bisection, the Viterbi DPs, the plant's step), and for
-them the elemental emitters compile in 15-25 % less time, run as fast or faster, and a batch of
-multilevel or baseline runs needs half the memory; the results are equal to the last bit
-(multilevel on the short track) or to 1 ulp (the conventional truck's fuel). The one
-program that runs faster with the fusion emitters is the conventional truck's batch (about
-18 %), which therefore keeps XLA's default (`jit(..., elemental=False)`). The figures, and the
-commands that give them, are in the README ("Compilation").
+small fusions inside loops (Level 2's bisection, the Viterbi DPs, the plant's step). Most of
+them compile in up to 25 % less time with the elemental emitters, run as fast, and a batch
+needs about half the memory. The results are equal to the last bit, or 1-2 ulp apart. The
+programs that run slower with them (the MPC, the eco-driving, the conventional truck's batch)
+keep XLA's default: `jit(..., elemental=False)`, chosen per strategy in `strategies`. The
+figures, and the commands that give them, are in the README ("Compilation").
 
 `jit(fun, **jax_jit_keywords)` is `jax.jit` with that option; the option names a CPU code
 generator, so other backends (GPU) ignore it. A JAX whose XLA does not know the option
