@@ -24,8 +24,14 @@ def _route():
 
 
 ROUTE = _route()
-PRED = bf.level3_prediction(ROUTE, load_vehicle().replace(mass=20000.0))
-CYCLE = bf.fastsim_cycle(PRED)
+PRED = CYCLE = None  # Level 3 on ROUTE and its cycle: set by the module fixture, not at import
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _prediction():
+    global PRED, CYCLE
+    PRED = bf.level3_prediction(ROUTE, load_vehicle().replace(mass=20000.0))
+    CYCLE = bf.fastsim_cycle(PRED)
 
 
 def test_cycle_grid_and_speeds():

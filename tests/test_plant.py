@@ -24,8 +24,14 @@ ROWS = [
 ROUTE = route_from_rows([r._replace(line=i + 2) for i, r in enumerate(ROWS)], ds=10.0,
                         bucket=64)
 VP = load_vehicle()
-PRED = predict_velocity(ROUTE, VP, n_steps=256)
+PRED = None  # Level 3 on ROUTE: set by the module fixture `_prediction`, not at import
 N_PLANT = 320
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _prediction():
+    global PRED
+    PRED = predict_velocity(ROUTE, VP, n_steps=256)
 
 
 def greedy(lam, cstate, vp, obs):
