@@ -150,8 +150,9 @@ def chunk_plan(B: int, n_devices: int, chunk: int | None) -> tuple[int, int]:
 
 @functools.lru_cache(maxsize=128)
 def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool,
-             elemental: bool = True):
-    """The jitted program for one (fn, chunk, devices); jit adds its own per-shape cache."""
+             elemental: bool):
+    """The jitted program for one (fn, chunk, devices, code generator); jit adds its own
+    per-shape cache."""
     n = len(devices)
 
     def local(shared, xs, c):

@@ -1155,7 +1155,7 @@ _profile_batch = jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
 @functools.lru_cache(maxsize=16)
 def _eco_trip_fn(dt: float, n_steps: int, opts: Options):
     return jit(jax.vmap(lambda route, vp: eco_speed(route, vp, dt, n_steps, opts)[0].trip_time,
-                            in_axes=(None, 0)))
+                        in_axes=(None, 0)))
 
 
 def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,

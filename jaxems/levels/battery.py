@@ -676,7 +676,7 @@ def _validate_levels(vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_p
     nan = np.nan
     return (
         _f64(nan if E_b0 is None else E_b0), _f64(nan if E_b_end is None else E_b_end),
-        _f64(nan if E_max is None else E_max), _f64(lo), _f64(hi),
+        _f64(E_min), _f64(nan if E_max is None else E_max), _f64(lo), _f64(hi),
     )
 
 
@@ -707,11 +707,11 @@ def solve_costate(
     exceptions from inside jit).
     """
     P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=False)
-    E_b0, E_b_end, E_max, lo, hi = _validate_levels(
+    E_b0, E_b_end, E_min, E_max, lo, hi = _validate_levels(
         vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces
     )
     return _costate_jit(
-        vp, P_d, v, w, mask, dt, E_b0, E_b_end, _f64(E_min), E_max, lo, hi, _f64(tol_rel),
+        vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lo, hi, _f64(tol_rel),
         n_iter=int(n_iter), max_pieces=int(max_pieces),
     )
 
@@ -969,11 +969,11 @@ def level2_horizon(
     whose two solutions span both limits at the window end, lambda_b is the guard value.
     """
     P_d, v, w, mask, dt = _validate_route(P_d, v, w, mask, dt, batch=False)
-    E_b0v, _, E_maxv, lo, hi = _validate_levels(
+    _, _, E_min, E_max, lo, hi = _validate_levels(
         vp, E_b0, None, E_min, E_max, lam_bracket, n_iter, max_pieces
     )
     e0 = vp.soc0 * vp.E_b_max if E_b0 is None else E_b0
     return _horizon_jit(
-        vp, P_d, v, w, mask, dt, _f64(e0), _f64(E_min), E_maxv, lo, hi, _f64(tol_rel),
+        vp, P_d, v, w, mask, dt, _f64(e0), E_min, E_max, lo, hi, _f64(tol_rel),
         n_iter=int(n_iter), max_pieces=int(max_pieces),
     )
