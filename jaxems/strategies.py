@@ -1238,9 +1238,9 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     dt = _check_dt(dt)
     opts = resolve_options(options or Options(), vehicles)
     _check_options(opts)
+    params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
-    params = switching or sw.SwitchCostParams()
     fn = _item_fn(strategy, dt, int(n_steps), opts)
     m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices,
                         elemental=BATCH_ELEMENTAL[strategy])
@@ -1280,7 +1280,8 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
 
     route: a `Route` or a path/bundled name; vehicle: `VehicleParams` or a name/path;
     mass_kg, battery_MJ: overrides (validated: positive); options: `Options` (or its fields as
-    keywords, e.g. n_iter=3, h1=5). Bad options raise ValueError naming the option.
+    keywords, e.g. n_iter=3, h1=5); switching: `SwitchCostParams` (None: the defaults;
+    `switching.checked_params`). Bad options raise ValueError naming the option.
     """
     from .io import load_route, route_name
 
@@ -1301,7 +1302,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ)
     if np.ndim(vp.mass):
         raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
-    params = switching or sw.SwitchCostParams()
+    params = sw.checked_params(switching, np.asarray(vp.mass).dtype)
     opts = resolve_options(opts, vp)
     n_steps = steps_for_batch(route, vp, dt, strategy, opts)
     t0 = time.perf_counter()

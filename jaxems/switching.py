@@ -45,6 +45,7 @@ from __future__ import annotations
 from typing import Any, NamedTuple
 
 import jax.numpy as jnp
+import numpy as np
 
 from . import powertrain as pt
 from .levels.powersplit import ENGINE_CONNECTED, MO, MODE_SHORT, MOTOR_CONNECTED, N_MODES
@@ -66,6 +67,38 @@ class SwitchCostParams(NamedTuple):
     averaged: Any = 0.0
     weight: Any = 1.0
     v_min: Any = 1.0
+
+
+# what each field must satisfy: (test, words for the error)
+_PARAM_RULES = {
+    "lambda_t": (lambda x: x <= 0, "<= 0 (J/s, the value of time)"),
+    "lambda_k": (lambda x: x <= 0, "<= 0 (fuel J per J of kinetic energy)"),
+    "averaged": (lambda x: (x >= 0) & (x <= 1), "in [0, 1]"),
+    "weight": (lambda x: x >= 0, ">= 0"),
+    "v_min": (lambda x: x > 0, "> 0 (m/s)"),
+}
+
+
+def checked_params(params: SwitchCostParams | None, dtype) -> SwitchCostParams:
+    """`params` (None: the defaults) validated, with every leaf a scalar array of `dtype`.
+
+    The host API (`simulate`, `simulate_batch`) passes switching costs through this, so that
+    the jitted strategies see the same leaf types whatever the caller gave (Python floats,
+    NumPy scalars): new values never recompile. Raises ValueError naming the field for a
+    value that is not a finite scalar or breaks its rule (for example lambda_t > 0).
+    """
+    params = SwitchCostParams() if params is None else params
+    if not isinstance(params, SwitchCostParams):
+        raise ValueError(f"switching: a SwitchCostParams expected (got {type(params).__name__})")
+    out = {}
+    for name, (ok, words) in _PARAM_RULES.items():
+        x = np.asarray(getattr(params, name))
+        if x.ndim != 0 or not np.issubdtype(x.dtype, np.number) or not np.isfinite(x):
+            raise ValueError(f"switching.{name}: must be a finite number (got {x!r})")
+        if not ok(float(x)):
+            raise ValueError(f"switching.{name}: must be {words} (got {float(x)!r})")
+        out[name] = np.asarray(x, dtype)  # NumPy: no device array before map_batch's devices
+    return SwitchCostParams(**out)
 
 
 def mode_flags(dtype=jnp.float64):

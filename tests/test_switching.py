@@ -127,3 +127,44 @@ def test_eps_M_and_eps_G_are_slices():
     assert eG[3, 7] == C[n_g + 3, n_g + 7]
     # starting the engine costs more than starting the motor (inertia 3 vs 1.5 kg m^2)
     assert eM[ps.MM, ps.ME] > eM[ps.ME, ps.MM] > 0
+
+
+def test_checked_params_make_array_leaves_that_share_one_compilation():
+    """Python floats and NumPy scalars of any type give the same leaves: a new value (or the
+    same value typed differently) does not recompile a jitted function of the parameters."""
+    f = xla.jit(lambda p: p.lambda_t * p.lambda_k + p.averaged + p.weight * p.v_min)
+    given_as = [
+        None,
+        sw.SwitchCostParams(lambda_t=-30e3, weight=np.float32(0.5)),
+        sw.SwitchCostParams(lambda_k=np.float64(-2.0), averaged=np.int64(1), v_min=2),
+    ]
+    for p in given_as:
+        q = sw.checked_params(p, np.float64)
+        assert all(np.asarray(x).dtype == np.float64 and np.ndim(x) == 0 for x in q)
+        raw = PRM if p is None else p
+        assert [float(x) for x in q] == [float(x) for x in raw]
+        expected = (float(raw.lambda_t) * float(raw.lambda_k) + float(raw.averaged)
+                    + float(raw.weight) * float(raw.v_min))
+        assert float(f(q)) == pytest.approx(expected, rel=1e-15)
+    assert f._get()._cache_size() == 1
+    assert np.asarray(sw.checked_params(None, np.float32).lambda_t).dtype == np.float32
+
+
+@pytest.mark.parametrize("field, value", [
+    ("lambda_t", 1.0), ("lambda_k", 0.5), ("averaged", 1.5), ("averaged", -0.1),
+    ("weight", -1.0), ("v_min", 0.0), ("lambda_t", float("nan")), ("v_min", np.ones(2)),
+    ("weight", "1"),
+])
+def test_checked_params_name_the_bad_field(field, value):
+    with pytest.raises(ValueError, match=f"switching.{field}: must be"):
+        sw.checked_params(PRM._replace(**{field: value}), np.float64)
+    with pytest.raises(ValueError, match="SwitchCostParams expected"):
+        sw.checked_params({"lambda_t": -1.0}, np.float64)
+
+
+def test_simulate_rejects_bad_switching_costs_before_compiling():
+    import jaxems
+
+    with pytest.raises(ValueError, match="switching.weight"):
+        jaxems.simulate("short_track", strategy="conventional",
+                        switching=PRM._replace(weight=-1.0))
