@@ -285,7 +285,11 @@ def _mean_grade(track: Track, s, ds):
 def _ref_position(track: Track, s):
     """(j, frac): the Level 3 step containing position s and the fraction covered."""
     T = track.ref_s.shape[0] - 1
-    j = jnp.clip(jnp.searchsorted(track.ref_s[1:], s, side="right"), 0, T - 1)
+    # the number of step ends ref_s[1:] at or before s; counted on ref_s itself, because XLA
+    # copies a slice ref_s[1:] inside the plant's loop at every step (T values a step: the
+    # plant's time grew as T^2 on long routes)
+    n_le = jnp.searchsorted(track.ref_s, s, side="right") - (track.ref_s[0] <= s)
+    j = jnp.clip(n_le, 0, T - 1)
     ds = track.ref_s[j + 1] - track.ref_s[j]
     frac = jnp.clip(jnp.where(ds > 0, (s - track.ref_s[j]) / jnp.where(ds > 0, ds, 1.0), 0.0),
                     0.0, 1.0)
