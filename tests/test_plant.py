@@ -275,6 +275,29 @@ def test_mean_grade_matches_the_cells_overlaps(s, ds):
     assert got == pytest.approx(np_mean_grade(s, ds), abs=1e-9)
 
 
+@settings(max_examples=40)
+@given(pos=st.lists(st.floats(0.0, 1200.0), min_size=1, max_size=8),
+       stands=st.lists(st.integers(1, 60), max_size=3))
+def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
+    """(j, frac) against NumPy's search on the step ends ref_s[1:]: the Level 3 step whose
+    span holds s (the last of several steps that end at s, as where the reference stands),
+    clipped to the grid."""
+    track = P.make_track(ROUTE, PRED)
+    ref_s = np.asarray(track.ref_s).copy()
+    for k in stands:  # standing steps: runs of equal positions
+        ref_s[k:k + 3] = ref_s[k]
+    ref_s = np.maximum.accumulate(ref_s)
+    tr = track._replace(ref_s=jnp.asarray(ref_s))
+    T = ref_s.size - 1
+    for x in [*pos, *ref_s[[0, 1, 5, T // 2, T]]]:
+        j, frac = P._ref_position(tr, jnp.asarray(x))
+        j_np = min(max(int(np.searchsorted(ref_s[1:], x, side="right")), 0), T - 1)
+        assert int(j) == j_np, x
+        d = ref_s[j_np + 1] - ref_s[j_np]
+        f_np = min(max((x - ref_s[j_np]) / d, 0.0), 1.0) if d > 0 else 0.0
+        assert float(frac) == pytest.approx(f_np, abs=1e-12)
+
+
 def test_road_work_is_the_gradient_of_the_distance_covered():
     """Each step's road load takes the mean gradient over its distance: the plant's road work
     is the sum over its steps of F_0(v, mean gradient over [s_k, s_k+1]) (s_k+1 - s_k), whatever
