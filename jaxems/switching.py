@@ -73,7 +73,7 @@ class SwitchCostParams(NamedTuple):
 _PARAM_RULES = {
     "lambda_t": (lambda x: x <= 0, "<= 0 (J/s, the value of time)"),
     "lambda_k": (lambda x: x <= 0, "<= 0 (fuel J per J of kinetic energy)"),
-    "averaged": (lambda x: (x >= 0) & (x <= 1), "in [0, 1]"),
+    "averaged": (lambda x: 0 <= x <= 1, "in [0, 1]"),
     "weight": (lambda x: x >= 0, ">= 0"),
     "v_min": (lambda x: x > 0, "> 0 (m/s)"),
 }
@@ -93,7 +93,7 @@ def checked_params(params: SwitchCostParams | None, dtype) -> SwitchCostParams:
     out = {}
     for name, (ok, words) in _PARAM_RULES.items():
         x = np.asarray(getattr(params, name))
-        if x.ndim != 0 or not np.issubdtype(x.dtype, np.number) or not np.isfinite(x):
+        if x.ndim != 0 or x.dtype.kind not in "iuf" or not np.isfinite(x):
             raise ValueError(f"switching.{name}: must be a finite number (got {x!r})")
         if not ok(float(x)):
             raise ValueError(f"switching.{name}: must be {words} (got {float(x)!r})")

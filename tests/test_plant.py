@@ -1,5 +1,6 @@
 """Plant: energy balance, stops, battery limits, open driveline, vmap == loop."""
 
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -275,6 +276,10 @@ def test_mean_grade_matches_the_cells_overlaps(s, ds):
     assert got == pytest.approx(np_mean_grade(s, ds), abs=1e-9)
 
 
+ref_position = xla.jit(P._ref_position)
+_track = functools.cache(lambda: P.make_track(ROUTE, PRED))  # after the module fixture
+
+
 @settings(max_examples=40)
 @given(pos=st.lists(st.floats(0.0, 1200.0), min_size=1, max_size=8),
        stands=st.lists(st.integers(1, 60), max_size=3))
@@ -282,7 +287,7 @@ def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     """(j, frac) against NumPy's search on the step ends ref_s[1:]: the Level 3 step whose
     span holds s (the last of several steps that end at s, as where the reference stands),
     clipped to the grid."""
-    track = P.make_track(ROUTE, PRED)
+    track = _track()
     ref_s = np.asarray(track.ref_s).copy()
     for k in stands:  # standing steps: runs of equal positions
         ref_s[k:k + 3] = ref_s[k]
@@ -290,7 +295,7 @@ def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     tr = track._replace(ref_s=jnp.asarray(ref_s))
     T = ref_s.size - 1
     for x in [*pos, *ref_s[[0, 1, 5, T // 2, T]]]:
-        j, frac = P._ref_position(tr, jnp.asarray(x))
+        j, frac = ref_position(tr, jnp.asarray(x))
         j_np = min(max(int(np.searchsorted(ref_s[1:], x, side="right")), 0), T - 1)
         assert int(j) == j_np, x
         d = ref_s[j_np + 1] - ref_s[j_np]

@@ -153,7 +153,7 @@ def test_checked_params_make_array_leaves_that_share_one_compilation():
 @pytest.mark.parametrize("field, value", [
     ("lambda_t", 1.0), ("lambda_k", 0.5), ("averaged", 1.5), ("averaged", -0.1),
     ("weight", -1.0), ("v_min", 0.0), ("lambda_t", float("nan")), ("v_min", np.ones(2)),
-    ("weight", "1"),
+    ("weight", "1"), ("weight", 1j), ("weight", True),
 ])
 def test_checked_params_name_the_bad_field(field, value):
     with pytest.raises(ValueError, match=f"switching.{field}: must be"):
