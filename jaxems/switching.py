@@ -82,7 +82,8 @@ _PARAM_RULES = {
 def checked_params(params: SwitchCostParams | None, dtype) -> SwitchCostParams:
     """`params` (None: the defaults) validated, with every leaf a scalar array of `dtype`.
 
-    The host API (`simulate`, `simulate_batch`) passes switching costs through this, so that
+    The host API (`simulate`, `simulate_batch`, Level 1's `level1_full`, `level1_mpc`,
+    `level1_batch`) passes switching costs through this, so that
     the jitted strategies see the same leaf types whatever the caller gave (Python floats,
     NumPy scalars): new values never recompile. Raises ValueError naming the field for a
     value that is not a finite scalar or breaks its rule (for example lambda_t > 0).

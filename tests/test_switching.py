@@ -146,7 +146,7 @@ def test_checked_params_make_array_leaves_that_share_one_compilation():
         expected = (float(raw.lambda_t) * float(raw.lambda_k) + float(raw.averaged)
                     + float(raw.weight) * float(raw.v_min))
         assert float(f(q)) == pytest.approx(expected, rel=1e-15)
-    assert f._get()._cache_size() == 1
+    assert f._cache_size() == 1
     assert np.asarray(sw.checked_params(None, np.float32).lambda_t).dtype == np.float32
 
 

@@ -467,13 +467,14 @@ def _check_inputs(vp, P_d, v, grade, mask):
         raise ValueError(f"mask: shape {np.shape(mask)} differs from P_d {np.shape(P_d)}")
 
 
-def _defaults(P_d, mask, init_mode, init_gear, params):
+def _defaults(vp, P_d, mask, init_mode, init_gear, params):
+    """The host API's defaults; the switching costs validated and typed as the vehicle
+    (`switching.checked_params`, as `simulate` does: new values never recompile)."""
     if mask is None:
         mask = jnp.ones(jnp.shape(P_d), bool)
     if init_mode is None:
         init_mode, init_gear = -1, 0
-    if params is None:
-        params = sw.SwitchCostParams()
+    params = sw.checked_params(params, np.asarray(vp.mass).dtype)
     return mask, jnp.asarray(init_mode, jnp.int32), jnp.asarray(init_gear, jnp.int32), params
 
 
@@ -498,7 +499,7 @@ def level1_full(
     Returns `Level1Result` (T,). Jitted; new array values do not recompile.
     """
     _check_inputs(vp, P_d, v, grade, mask)
-    mask, im, ig, params = _defaults(P_d, mask, init_mode, init_gear, params)
+    mask, im, ig, params = _defaults(vp, P_d, mask, init_mode, init_gear, params)
     return _level1_full_jit(vp, P_d, v, grade, lam, dt, mask, im, ig, params)
 
 
@@ -567,7 +568,7 @@ def level1_mpc(
     if int(horizon) < 1:
         raise ValueError(f"horizon: must be >= 1 sample (got {horizon})")
     _check_inputs(vp, P_d, v, grade, mask)
-    mask, im, ig, params = _defaults(P_d, mask, init_mode, init_gear, params)
+    mask, im, ig, params = _defaults(vp, P_d, mask, init_mode, init_gear, params)
     return _level1_mpc_jit(vp, P_d, v, grade, lam, dt, mask, im, ig, params, horizon=int(horizon))
 
 
@@ -635,7 +636,7 @@ def level1_batch(
     if np.ndim(P_d) != 2:
         raise ValueError(f"P_d: expected (routes, T), got shape {np.shape(P_d)}")
     _check_inputs(vps, P_d, v, grade, mask)
-    mask, im, ig, params = _defaults(P_d, mask, init_mode, init_gear, params)
+    mask, im, ig, params = _defaults(vps, P_d, mask, init_mode, init_gear, params)
     lam = jnp.asarray(lam)
     if lam.ndim not in (1, 2):
         raise ValueError(f"lam: expected (L,) or (L, T), got shape {lam.shape}")
