@@ -41,6 +41,7 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from . import powertrain as pt
 from . import switching as sw
@@ -62,7 +63,8 @@ class Track(NamedTuple):
     (+inf / 0 where none follows). length: () route length (m). final_s: () position (m) from
     which the reference needs no more traction to the route's end (its final braking or
     coasting): from there the battery stores no more than the trip started with (+inf: no
-    such cap).
+    such cap). ref_c, grid_c: ref_s[::SEARCH_BLOCK], grid_s[::SEARCH_BLOCK], the first value of
+    each block of the sorted positions (`block_search`).
     """
 
     ref_s: Any
@@ -74,6 +76,8 @@ class Track(NamedTuple):
     stop_t: Any
     length: Any
     final_s: Any
+    ref_c: Any
+    grid_c: Any
 
 
 class Obs(NamedTuple):
@@ -270,16 +274,53 @@ def _stands(dwell, dt):
     return dwell > 0.5 * dt
 
 
+SEARCH_BLOCK = 64
+
+
+def block_search(a, a_c, v, side: str):
+    """`jnp.searchsorted(a, v, side=side)` for a sorted (N,) and a scalar v, with a_c =
+    a[::SEARCH_BLOCK]: the block starts are searched, then the one block (SEARCH_BLOCK values)
+    that holds the answer. The plant searches its route and reference at every step; a binary
+    search over the whole array touches log2(N) places spread over it, and on long routes, for
+    batches under vmap, the plant's step then took up to twice as long per step as on a route
+    a quarter as long (measured in README "Fleet throughput and scaling").
+    With q block starts before v (side's sense), every value of the blocks before block q - 1
+    is before v and every value from block q on is not, so the answer is in block q - 1; its
+    window is clamped into the array (`dynamic_slice`), and the values it then also covers
+    before that block are before v and counted by the window's search."""
+    N, B = a.shape[0], SEARCH_BLOCK
+    if N <= B:
+        return jnp.searchsorted(a, v, side=side)
+    q = jnp.searchsorted(a_c, v, side=side)
+    start = jnp.clip((q - 1) * B, 0, N - B)
+    window = jax.lax.dynamic_slice_in_dim(a, start, B)
+    return start + jnp.searchsorted(window, v, side=side)
+
+
+def _interp(x, xp, xp_c, fp):
+    """`jnp.interp(x, xp, fp)` for a scalar x (the same arithmetic), its search by
+    `block_search`."""
+    i = jnp.clip(block_search(xp, xp_c, x, "right"), 1, xp.shape[0] - 1)
+    df = fp[i] - fp[i - 1]
+    dx = xp[i] - xp[i - 1]
+    delta = x - xp[i - 1]
+    dx0 = jnp.abs(dx) <= np.spacing(np.finfo(xp.dtype).eps)
+    f = jnp.where(dx0, fp[i - 1], fp[i - 1] + (delta / jnp.where(dx0, 1, dx)) * df)
+    return jnp.where(x > xp[-1], fp[-1], jnp.where(x < xp[0], fp[0], f))
+
+
 def _mean_grade(track: Track, s, ds):
     """Mean gradient over [s, s + ds] within the route, exact per cell (the gradient at s where
     that stretch is shorter than 1 mm): the road work of a step does not depend on where its
     start falls against the gradient's changes."""
     s1 = jnp.minimum(s + ds, track.length)
     d = s1 - s
-    h = jnp.interp(jnp.stack([s, s1]), track.grid_s, track.rise)
-    i = jnp.clip(jnp.searchsorted(track.grid_s, s, side="right") - 1, 0, track.grade.shape[0] - 1)
+    h0 = _interp(s, track.grid_s, track.grid_c, track.rise)
+    h1 = _interp(s1, track.grid_s, track.grid_c, track.rise)
+    i = jnp.clip(block_search(track.grid_s, track.grid_c, s, "right") - 1, 0,
+                 track.grade.shape[0] - 1)
     far = d > 1e-3
-    return jnp.where(far, (h[1] - h[0]) / jnp.where(far, d, 1.0), track.grade[i])
+    return jnp.where(far, (h1 - h0) / jnp.where(far, d, 1.0), track.grade[i])
 
 
 def _ref_position(track: Track, s):
@@ -288,7 +329,7 @@ def _ref_position(track: Track, s):
     # the number of step ends ref_s[1:] at or before s; counted on ref_s itself, because XLA
     # copies a slice ref_s[1:] inside the plant's loop at every step (T values a step: the
     # plant's time grew as T^2 on long routes)
-    n_le = jnp.searchsorted(track.ref_s, s, side="right") - (track.ref_s[0] <= s)
+    n_le = block_search(track.ref_s, track.ref_c, s, "right") - (track.ref_s[0] <= s)
     j = jnp.clip(n_le, 0, T - 1)
     ds = track.ref_s[j + 1] - track.ref_s[j]
     frac = jnp.clip(jnp.where(ds > 0, (s - track.ref_s[j]) / jnp.where(ds > 0, ds, 1.0), 0.0),
@@ -324,7 +365,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
 
     # --- target: follow the reference, stop exactly at the next stop, stand for its duration
     N = track.grid_s.shape[0]
-    i_node = jnp.clip(jnp.searchsorted(track.grid_s, s0 + 1e-6, side="right") - 1, 0, N - 1)
+    i_node = jnp.clip(block_search(track.grid_s, track.grid_c, s0 + 1e-6, "right") - 1, 0, N - 1)
     i_next = jnp.where(track.stop_s[i_node] > st.served + 1e-6, i_node, i_node + 1)
     s_stop = track.stop_s[i_next]
     t_stop = track.stop_t[i_next]
@@ -532,7 +573,8 @@ def make_track(route, pred, end_cap: bool = True) -> Track:
     final_s = ref_s[last] if end_cap else jnp.asarray(jnp.inf, ref_s.dtype)
     return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
                  rise=node_rise(route, prof.s.dtype),
-                 stop_s=stop_s, stop_t=stop_t, length=pred.length, final_s=final_s)
+                 stop_s=stop_s, stop_t=stop_t, length=pred.length, final_s=final_s,
+                 ref_c=ref_s[::SEARCH_BLOCK], grid_c=grid_s[::SEARCH_BLOCK])
 
 
 def initial_state(vp: VehicleParams, track: Track, mode, gear, dtype=None) -> PlantState:
