@@ -52,6 +52,9 @@ from .params import VehicleParams
 MO = ps.MO
 
 
+SEARCH_BLOCK = 64  # values per block of the plant's searches (`block_search`)
+
+
 class Track(NamedTuple):
     """What the plant needs of the route and of the Level 3 reference (one route).
 
@@ -64,7 +67,8 @@ class Track(NamedTuple):
     which the reference needs no more traction to the route's end (its final braking or
     coasting): from there the battery stores no more than the trip started with (+inf: no
     such cap). ref_c, grid_c: ref_s[::SEARCH_BLOCK], grid_s[::SEARCH_BLOCK], the first value of
-    each block of the sorted positions (`block_search`).
+    each block of the sorted positions (`block_search`); `with_search_blocks` sets them from
+    ref_s and grid_s (again after either is replaced).
     """
 
     ref_s: Any
@@ -78,6 +82,10 @@ class Track(NamedTuple):
     final_s: Any
     ref_c: Any
     grid_c: Any
+
+    def with_search_blocks(self) -> Track:
+        """This track with ref_c and grid_c taken from its ref_s and grid_s."""
+        return self._replace(ref_c=self.ref_s[::SEARCH_BLOCK], grid_c=self.grid_s[::SEARCH_BLOCK])
 
 
 class Obs(NamedTuple):
@@ -272,9 +280,6 @@ def _stands(dwell, dt):
     """Whether a stop's remaining time dwell (s) still holds the vehicle for this step: the
     time runs from the arrival within a step and ends at the nearest step."""
     return dwell > 0.5 * dt
-
-
-SEARCH_BLOCK = 64
 
 
 def block_search(a, a_c, v, side: str):
@@ -574,7 +579,7 @@ def make_track(route, pred, end_cap: bool = True) -> Track:
     return Track(ref_s=ref_s, ref_v=ref_v, grid_s=grid_s, grade=jnp.asarray(route.grade),
                  rise=node_rise(route, prof.s.dtype),
                  stop_s=stop_s, stop_t=stop_t, length=pred.length, final_s=final_s,
-                 ref_c=ref_s[::SEARCH_BLOCK], grid_c=grid_s[::SEARCH_BLOCK])
+                 ref_c=None, grid_c=None).with_search_blocks()
 
 
 def initial_state(vp: VehicleParams, track: Track, mode, gear, dtype=None) -> PlantState:

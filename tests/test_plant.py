@@ -292,7 +292,7 @@ def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     for k in stands:  # standing steps: runs of equal positions
         ref_s[k:k + 3] = ref_s[k]
     ref_s = np.maximum.accumulate(ref_s)
-    tr = track._replace(ref_s=jnp.asarray(ref_s))
+    tr = track._replace(ref_s=jnp.asarray(ref_s)).with_search_blocks()
     T = ref_s.size - 1
     for x in [*pos, *ref_s[[0, 1, 5, T // 2, T]]]:
         j, frac = ref_position(tr, jnp.asarray(x))
@@ -374,3 +374,32 @@ def test_all_ranges_equal_each_states_own(v):
         for name, a, b in zip(want._fields, got, want, strict=True):
             assert float(a[s]) == float(b) or (np.isnan(float(a[s])) and np.isnan(float(b))), (
                 s, name)
+
+
+_block_search = {side: xla.jit(functools.partial(P.block_search, side=side))
+                 for side in ("left", "right")}
+_interp = xla.jit(P._interp)
+_SIZES = (5, 64, 65, 300)  # below, at and above one block; several blocks
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.sampled_from(_SIZES), data=st.data())
+def test_block_search_is_searchsorted(n, data):
+    """`block_search` gives numpy's searchsorted index on sorted arrays with runs of equal
+    values, for values before, within (on the values themselves) and after the array; and
+    `_interp` gives jnp.interp's value to the last bit, where two nodes coincide too.
+    (Subnormal values are left out: XLA's CPU flushes them to zero, numpy does not.)"""
+    ints = data.draw(st.lists(st.integers(0, 40), min_size=n, max_size=n))
+    a = np.sort(np.asarray(ints, np.float64)) * 2.5
+    y = np.asarray(data.draw(st.lists(st.floats(-5.0, 5.0, allow_subnormal=False), min_size=n, max_size=n)))
+    xs = [*a[[0, n // 2, n - 1]], -1.0, a[-1] + 1.0,
+          *data.draw(st.lists(st.floats(-2.0, 105.0, allow_subnormal=False), min_size=1, max_size=6))]
+    tr = P.Track(*(None,) * 11)._replace(ref_s=jnp.asarray(a), grid_s=jnp.asarray(a))
+    tr = tr.with_search_blocks()
+    for x in xs:
+        for side in ("left", "right"):
+            got = int(_block_search[side](tr.grid_s, tr.grid_c, jnp.asarray(x)))
+            assert got == int(np.searchsorted(a, x, side=side)), (x, side)
+        got = _interp(jnp.asarray(x), tr.grid_s, tr.grid_c, jnp.asarray(y))
+        want = jnp.interp(jnp.asarray(x), jnp.asarray(a), jnp.asarray(y))
+        assert float(got) == float(want), x
