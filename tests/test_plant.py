@@ -391,9 +391,10 @@ def test_block_search_is_searchsorted(n, data):
     (Subnormal values are left out: XLA's CPU flushes them to zero, numpy does not.)"""
     ints = data.draw(st.lists(st.integers(0, 40), min_size=n, max_size=n))
     a = np.sort(np.asarray(ints, np.float64)) * 2.5
-    y = np.asarray(data.draw(st.lists(st.floats(-5.0, 5.0, allow_subnormal=False), min_size=n, max_size=n)))
+    floats = functools.partial(st.floats, allow_subnormal=False)
+    y = np.asarray(data.draw(st.lists(floats(-5.0, 5.0), min_size=n, max_size=n)))
     xs = [*a[[0, n // 2, n - 1]], -1.0, a[-1] + 1.0,
-          *data.draw(st.lists(st.floats(-2.0, 105.0, allow_subnormal=False), min_size=1, max_size=6))]
+          *data.draw(st.lists(floats(-2.0, 105.0), min_size=1, max_size=6))]
     tr = P.Track(*(None,) * 11)._replace(ref_s=jnp.asarray(a), grid_s=jnp.asarray(a))
     tr = tr.with_search_blocks()
     for x in xs:
