@@ -302,10 +302,10 @@ def block_search(a, a_c, v, side: str):
     return start + jnp.searchsorted(window, v, side=side)
 
 
-def _interp(x, xp, xp_c, fp):
-    """`jnp.interp(x, xp, fp)` for a scalar x (the same arithmetic), its search by
-    `block_search`."""
-    i = jnp.clip(block_search(xp, xp_c, x, "right"), 1, xp.shape[0] - 1)
+def _interp_at(r, x, xp, fp):
+    """`jnp.interp(x, xp, fp)` for a scalar x (the same arithmetic), given r, the index
+    `searchsorted(xp, x, side="right")`."""
+    i = jnp.clip(r, 1, xp.shape[0] - 1)
     df = fp[i] - fp[i - 1]
     dx = xp[i] - xp[i - 1]
     delta = x - xp[i - 1]
@@ -314,16 +314,21 @@ def _interp(x, xp, xp_c, fp):
     return jnp.where(x > xp[-1], fp[-1], jnp.where(x < xp[0], fp[0], f))
 
 
+def _interp(x, xp, xp_c, fp):
+    """`jnp.interp(x, xp, fp)` for a scalar x, its search by `block_search`."""
+    return _interp_at(block_search(xp, xp_c, x, "right"), x, xp, fp)
+
+
 def _mean_grade(track: Track, s, ds):
     """Mean gradient over [s, s + ds] within the route, exact per cell (the gradient at s where
     that stretch is shorter than 1 mm): the road work of a step does not depend on where its
     start falls against the gradient's changes."""
     s1 = jnp.minimum(s + ds, track.length)
     d = s1 - s
-    h0 = _interp(s, track.grid_s, track.grid_c, track.rise)
+    r0 = block_search(track.grid_s, track.grid_c, s, "right")  # one search at s, for both
+    h0 = _interp_at(r0, s, track.grid_s, track.rise)
     h1 = _interp(s1, track.grid_s, track.grid_c, track.rise)
-    i = jnp.clip(block_search(track.grid_s, track.grid_c, s, "right") - 1, 0,
-                 track.grade.shape[0] - 1)
+    i = jnp.clip(r0 - 1, 0, track.grade.shape[0] - 1)
     far = d > 1e-3
     return jnp.where(far, (h1 - h0) / jnp.where(far, d, 1.0), track.grade[i])
 
