@@ -41,7 +41,6 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from . import powertrain as pt
 from . import switching as sw
@@ -292,31 +291,22 @@ def block_search(a, a_c, v, side: str):
     With q block starts before v (side's sense), every value of the blocks before block q - 1
     is before v and every value from block q on is not, so the answer is in block q - 1; its
     window is clamped into the array (`dynamic_slice`), and the values it then also covers
-    before that block are before v and counted by the window's search."""
+    before that block are before v and counted by the window's search. Both searches compare
+    v with every value searched at once (`method="compare_all"`: one fused kernel, where a
+    binary search is a loop of a few kernels per halving, whose overhead in the plant's step
+    was larger than its work)."""
     N, B = a.shape[0], SEARCH_BLOCK
     if N <= B:
-        return jnp.searchsorted(a, v, side=side)
-    q = jnp.searchsorted(a_c, v, side=side)
+        return jnp.searchsorted(a, v, side=side, method="compare_all")
+    q = jnp.searchsorted(a_c, v, side=side, method="compare_all")
     start = jnp.clip((q - 1) * B, 0, N - B)
     window = jax.lax.dynamic_slice_in_dim(a, start, B)
-    return start + jnp.searchsorted(window, v, side=side)
-
-
-def _interp_at(r, x, xp, fp):
-    """`jnp.interp(x, xp, fp)` for a scalar x (the same arithmetic), given r, the index
-    `searchsorted(xp, x, side="right")`."""
-    i = jnp.clip(r, 1, xp.shape[0] - 1)
-    df = fp[i] - fp[i - 1]
-    dx = xp[i] - xp[i - 1]
-    delta = x - xp[i - 1]
-    dx0 = jnp.abs(dx) <= np.spacing(np.finfo(xp.dtype).eps)
-    f = jnp.where(dx0, fp[i - 1], fp[i - 1] + (delta / jnp.where(dx0, 1, dx)) * df)
-    return jnp.where(x > xp[-1], fp[-1], jnp.where(x < xp[0], fp[0], f))
+    return start + jnp.searchsorted(window, v, side=side, method="compare_all")
 
 
 def _interp(x, xp, xp_c, fp):
     """`jnp.interp(x, xp, fp)` for a scalar x, its search by `block_search`."""
-    return _interp_at(block_search(xp, xp_c, x, "right"), x, xp, fp)
+    return pt.interp_at(block_search(xp, xp_c, x, "right"), x, xp, fp)
 
 
 def _mean_grade(track: Track, s, ds):
@@ -326,7 +316,7 @@ def _mean_grade(track: Track, s, ds):
     s1 = jnp.minimum(s + ds, track.length)
     d = s1 - s
     r0 = block_search(track.grid_s, track.grid_c, s, "right")  # one search at s, for both
-    h0 = _interp_at(r0, s, track.grid_s, track.rise)
+    h0 = pt.interp_at(r0, s, track.grid_s, track.rise)
     h1 = _interp(s1, track.grid_s, track.grid_c, track.rise)
     i = jnp.clip(r0 - 1, 0, track.grade.shape[0] - 1)
     far = d > 1e-3

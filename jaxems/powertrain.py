@@ -11,8 +11,31 @@ Every function takes `vp: VehicleParams` first and works on scalars or broadcast
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from .params import VehicleParams
+
+
+# ------------------------------------------------------------------------------- interpolation
+def interp_at(r, x, xp, fp):
+    """`jnp.interp(x, xp, fp)` (the same arithmetic, to the last bit) given r, the index
+    `searchsorted(xp, x, side="right")` (x of any shape, xp and fp (N,))."""
+    xp, fp = jnp.asarray(xp), jnp.asarray(fp)
+    i = jnp.clip(r, 1, xp.shape[0] - 1)
+    df = fp[i] - fp[i - 1]
+    dx = xp[i] - xp[i - 1]
+    delta = x - xp[i - 1]
+    dx0 = jnp.abs(dx) <= np.spacing(np.finfo(xp.dtype).eps)
+    f = jnp.where(dx0, fp[i - 1], fp[i - 1] + (delta / jnp.where(dx0, 1, dx)) * df)
+    return jnp.where(x > xp[-1], fp[-1], jnp.where(x < xp[0], fp[0], f))
+
+
+def interp(x, xp, fp):
+    """`jnp.interp(x, xp, fp)` for a short xp (a capability curve's few points): the search
+    compares x with every point at once (`searchsorted(method="compare_all")`), one fused
+    kernel, where jnp.interp's binary search is a loop of a few kernels per halving; inside
+    the plant's step (a scalar x) that loop's overhead was most of the step's time."""
+    return interp_at(jnp.searchsorted(xp, x, side="right", method="compare_all"), x, xp, fp)
 
 
 # ---------------------------------------------------------------------------- engine (eqs. 1-3)
@@ -23,8 +46,8 @@ def engine_friction(vp: VehicleParams, w):
 
 def engine_power_limits(vp: VehicleParams, w):
     """(P_e_min, P_e_max) (W) at crank speed w: engine-brake and full-load power, eq. 2."""
-    t_max = jnp.interp(w, vp.te_max_w, vp.te_max)
-    t_min = jnp.interp(w, vp.te_min_w, vp.te_min)
+    t_max = interp(w, vp.te_max_w, vp.te_max)
+    t_min = interp(w, vp.te_min_w, vp.te_min)
     return t_min * w, t_max * w
 
 

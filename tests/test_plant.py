@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import plant as P
+from jaxems import powertrain as pt
 from jaxems import reference as R
 from jaxems import xla
 from jaxems.levels import powersplit as ps
@@ -379,6 +380,7 @@ def test_all_ranges_equal_each_states_own(v):
 _block_search = {side: xla.jit(functools.partial(P.block_search, side=side))
                  for side in ("left", "right")}
 _interp = xla.jit(P._interp)
+_pt_interp = xla.jit(pt.interp)
 _SIZES = (5, 64, 65, 300)  # below, at and above one block; several blocks
 
 
@@ -387,7 +389,8 @@ _SIZES = (5, 64, 65, 300)  # below, at and above one block; several blocks
 def test_block_search_is_searchsorted(n, data):
     """`block_search` gives numpy's searchsorted index on sorted arrays with runs of equal
     values, for values before, within (on the values themselves) and after the array; and
-    `_interp` gives jnp.interp's value to the last bit, where two nodes coincide too.
+    `_interp`, and `powertrain.interp` (its search compares with every node) on all the values
+    at once, give jnp.interp's values to the last bit, where two nodes coincide too.
     (Subnormal values are left out: XLA's CPU flushes them to zero, numpy does not.)"""
     ints = data.draw(st.lists(st.integers(0, 40), min_size=n, max_size=n))
     a = np.sort(np.asarray(ints, np.float64)) * 2.5
@@ -404,3 +407,6 @@ def test_block_search_is_searchsorted(n, data):
         got = _interp(jnp.asarray(x), tr.grid_s, tr.grid_c, jnp.asarray(y))
         want = jnp.interp(jnp.asarray(x), jnp.asarray(a), jnp.asarray(y))
         assert float(got) == float(want), x
+    x2 = jnp.asarray(xs)[:, None] + jnp.asarray([0.0, 0.5])  # (n, 2): any shape of x
+    np.testing.assert_array_equal(_pt_interp(x2, jnp.asarray(a), jnp.asarray(y)),
+                                  jnp.interp(x2, jnp.asarray(a), jnp.asarray(y)))
