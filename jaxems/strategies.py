@@ -371,8 +371,7 @@ def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
     2's costate unchanged."""
     T = c2.lam.shape[0]
     K = c2.lam_lo.shape[0]
-    k = jnp.arange(T)
-    pid = jnp.clip(jnp.searchsorted(c2.boundaries, k, side="right") - 1, 0, K - 1)
+    pid = l2.piece_ids(c2.boundaries, T)
     jump = jnp.abs(jax.ops.segment_sum(c2.dE_plus - c2.dE_minus, pid, K)) > tol
     lam_lo, lam_hi = c2.lam_lo[pid], c2.lam_hi[pid]
     side = jnp.where(c2.sel > 0.5, lam_lo - gap, lam_hi + gap)
@@ -383,9 +382,7 @@ def piece_targets(c2: l2.CostateResult, T: int):
     """Level 2's pieces as Level 1 targets: pid (T,) the piece of each step, and dE (K,) the
     battery energy change (J) Level 2 plans over each piece (between its limits, or to the end
     of the route); pieces beyond `n_pieces` have no steps."""
-    K = c2.lam_lo.shape[0]
-    pid = jnp.clip(jnp.searchsorted(c2.boundaries, jnp.arange(T), side="right") - 1, 0, K - 1)
-    return pid, c2.E_bnd[1:] - c2.E_bnd[:-1]
+    return l2.piece_ids(c2.boundaries, T), c2.E_bnd[1:] - c2.E_bnd[:-1]
 
 
 class Drift(NamedTuple):

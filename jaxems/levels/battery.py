@@ -181,10 +181,12 @@ def _pass(vp, P_d, v, gear, ok, lam_steps, dt):
 
 
 # --------------------------------------------------------------------------- piecewise helpers
-def _piece_ids(bnd, T):
-    """Piece index of each step: bnd (K+1,) sorted, padded with T -> (T,) in [0, K-1]."""
+def piece_ids(bnd, T):
+    """Piece index of each step: bnd (K+1,) sorted, padded with T -> (T,) in [0, K-1]. Each
+    step is compared with every boundary (few), one fused kernel where a binary search is a
+    loop."""
     K = bnd.shape[0] - 1
-    pid = jnp.searchsorted(bnd, jnp.arange(T), side="right") - 1
+    pid = jnp.searchsorted(bnd, jnp.arange(T), side="right", method="compare_all") - 1
     return jnp.clip(pid, 0, K - 1)
 
 
@@ -352,7 +354,7 @@ def _solve_pieces(
     """Bisect every piece at once; mix the bracketing trajectories (I2a)."""
     K = bnd.shape[0] - 1
     T = P_d.shape[0]
-    pid = _piece_ids(bnd, T)
+    pid = piece_ids(bnd, T)
     E_start, tgt = E_bnd[:K], E_bnd[1:]
     lo = jnp.full((K,), lam_lo, dtype=E_bnd.dtype)
     hi = jnp.full((K,), lam_hi, dtype=E_bnd.dtype)
