@@ -294,7 +294,8 @@ def block_search(a, a_c, v, side: str):
     before that block are before v and counted by the window's search. Both searches compare
     v with every value searched at once (`method="compare_all"`: one fused kernel, where a
     binary search is a loop of a few kernels per halving, whose overhead in the plant's step
-    was larger than its work)."""
+    was larger than its work); the blocks keep that to N / SEARCH_BLOCK + SEARCH_BLOCK
+    comparisons instead of N."""
     N, B = a.shape[0], SEARCH_BLOCK
     if N <= B:
         return jnp.searchsorted(a, v, side=side, method="compare_all")
