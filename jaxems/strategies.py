@@ -425,20 +425,35 @@ def _split_bisections(T: int) -> int:
     return int(math.ceil(math.log2(T + 1))) + 1
 
 
-def _sustaining_phases(T: int, n_bisect: int) -> tuple[int, int, int, int]:
+def _sustaining_phases(T: int, n_bisect: int) -> tuple[int, int, int]:
     """Where `sustaining_level1`'s phases start in its sequence of DPs over T steps: the two
-    sides, the time split's bisection, the four candidates, the final plan (the shift's
-    bisection starts at 0)."""
+    sides, the four candidates, the final plan (the shift's bisection starts at 0)."""
     p_side = n_bisect
-    p_split = p_side + 2
-    p_cand = p_split + _split_bisections(T)
-    return p_side, p_split, p_cand, p_cand + 4
+    p_cand = p_side + 2
+    return p_side, p_cand, p_cand + 4
 
 
 def sustaining_dps(T: int, n_bisect: int = 14) -> int:
     """Full-route Level 1 DPs one `sustaining_level1` call runs over T steps: the shift's
-    bisection, the two sides, the time split's bisection, the four candidates, the final plan."""
+    bisection, the two sides, the four candidates, the final plan."""
     return _sustaining_phases(T, n_bisect)[-1] + 1
+
+
+def split_sides(vp, dE_first, dE_then, pid, target, t0, t1, then_high):
+    """The time split of `sustaining_level1` on its two sides' plans joined: each piece runs
+    the plan `first` (dE_first: (T,) its steps' energy changes) up to a step t_s and `then`
+    after it, t_s in [t0, t1) (K,) found by bisection down to one step on the piece's end
+    within the battery's limits (`held_piece_error`), where then_high (K,): `then` alone ends
+    above the target. Returns the final (t0, t1) (K,)."""
+    k = jnp.arange(dE_first.shape[0])
+
+    def bis(_, c):
+        t0, t1 = c
+        m = (t0 + t1) // 2
+        e = held_piece_error(vp, jnp.where(k < m[pid], dE_first, dE_then), pid, target)
+        return narrow(t0, t1, m, (e > 0) == then_high)
+
+    return jax.lax.fori_loop(0, _split_bisections(dE_first.shape[0]), bis, (t0, t1))
 
 
 def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14,
@@ -448,18 +463,20 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     bisection on all pieces at once, so that the DP's plan changes the battery by the piece's
     target (charge sustaining over the last piece; a limit reached where Level 2 reaches it).
     Where a piece's energy jumps with the shift (a guard, as in I2 of Level 2) the plans either
-    side are joined in time within the piece: one side up to a step t_s and the other after,
-    t_s found by bisection (I2b's single switch). The side whose plan alone the battery's limits
-    hold less goes first: where the plan's battery is held, the plant cannot do what the plan
-    does (on the short track's first climb the discharging side first emptied the battery, and
-    the plant then cruised on the engine where the plan cruised on the motor: 7.42 MJ corrected
-    against 7.27 with the charging side first, on the plant before its mean gradient). Each
-    piece then takes, of the candidates whose end comes closest to its target (within tol_rel
+    side are joined in time within the piece: one side up to a step t_s and the other after
+    (I2b's single switch), t_s found by bisection on the two sides' plans joined
+    (`split_sides`: no DP; the DP of a joined costate differs from the joined plans only
+    around t_s, where its switching costs weigh the two sides together). The side whose plan
+    alone the battery's limits hold less goes first: where the plan's battery is held, the plant
+    cannot do what the plan does (on the short track's first climb the discharging side first
+    emptied the battery, and the plant then cruised on the engine where the plan cruised on the
+    motor: 7.42 MJ corrected against 7.27 with the charging side first, on the plant before its
+    mean gradient). Each piece then takes, of the candidates (the bracket's ends of the shift
+    and of the time split, each a DP) whose end comes closest to its target (within tol_rel
     E_b_max) with the battery held within its limits (`battery_path`: a plan that drains the
-    battery below empty on the way ends higher in the plant than its sum says; the bisection on
-    t_s judges ends the same way), the one whose battery the limits hold least on the way.
-    Where Level 1's decisions move the battery in large steps (a whole climb on the motor or
-    not) a residual remains. The plans' balances
+    battery below empty on the way ends higher in the plant than its sum says), the one whose
+    battery the limits hold least on the way. Where Level 1's decisions move the battery in
+    large steps (a whole climb on the motor or not) a residual remains. The plans' balances
     count what their switches cost the battery (`steps_energy`).
     Without Level 2 pieces (pid all 0, target (1,) = [0]) this is charge sustaining.
     Returns (Level1Result, lambda_b (T,) used)."""
@@ -469,10 +486,10 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     k = jnp.arange(T)
     dtype = pred.v.dtype
     trac = l1.traction_table(vp, pred.v, pred.grade, params)  # the same for every lambda_b
-    # the DPs in order: the shift's bisection, the two sides, the time split's bisection, the
-    # four candidates, the final plan; one loop with one DP in its body, so that the DP
-    # compiles once (at five call sites the stage took about twice the compile time)
-    p_side, p_split, p_cand, p_final = _sustaining_phases(T, n_bisect)
+    # the DPs in order: the shift's bisection, the two sides, the four candidates, the final
+    # plan; one loop with one DP in its body, so that the DP compiles once (at five call sites
+    # the stage took about twice the compile time)
+    p_side, p_cand, p_final = _sustaining_phases(T, n_bisect)
 
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
@@ -480,16 +497,19 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
     end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
 
-    def costate(phase, i, c):  # (T,) the costate of DP number i, and then_high (K,)
-        a, b, held_err, held, t0, t1, _ = c
+    def order(held_err, held):  # charge_first (K,), then_high (K,) from the sides' scores
+        # the side whose plan alone the limits hold less goes first (per piece)
+        charge_first = held[1] > held[0]
+        return charge_first, jnp.where(charge_first, held_err[1], held_err[0]) > 0
+
+    def costate(phase, i, c):  # (T,) the costate of DP number i
+        a, b, held_err, held, t0, t1, _, _ = c
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
-        # the side whose plan alone the limits hold less goes first (per piece)
-        charge_first = held[1] > held[0]
+        charge_first, _ = order(held_err, held)
         first = jnp.where(charge_first[pid], ja, jb)
         then = jnp.where(charge_first[pid], jb, ja)
-        then_high = jnp.where(charge_first, held_err[1], held_err[0]) > 0  # `then` alone
 
         def joined(ts):  # ts: (K,) the step of each piece where `then` takes over from `first`
             return jnp.where(k < ts[pid], first, then)
@@ -498,41 +518,51 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         errs, hs = held_err[2:], held[2:]  # (4, K) the candidates'
         near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
         best = jnp.argmin(jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
-        lam_t = jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb, joined((t0 + t1) // 2),
-                                 cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
-        return lam_t, then_high
+        return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb,
+                                cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
+
+    def split(c):  # the time split on the sides' plans, before the candidates
+        _, _, held_err, held, t0, t1, sides, _ = c
+        charge_first, then_high = order(held_err, held)
+        first = jnp.where(charge_first[pid], sides[0], sides[1])
+        then = jnp.where(charge_first[pid], sides[1], sides[0])
+        return split_sides(vp, first, then, pid, target, t0, t1, then_high)
 
     def step(i, c):
-        a, b, held_err, held, t0, t1, _ = c
-        # 0 the shift's bisection, 1 and 2 the sides, 3 the time split, 4 the candidates,
-        # 5 the final plan
-        phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_split, p_cand, p_final]))
-        lam_t, then_high = costate(phase, i, c)
+        # 0 the shift's bisection, 1 and 2 the sides, 3 the candidates, 4 the final plan
+        phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_cand, p_final]))
+        # `i` is not batched, so under vmap these stay conds
+        t0, t1 = jax.lax.cond(i == p_cand, split, lambda c: c[4:6], c)
+        a, b, held_err, held, _, _, sides, _ = c
+        c = (a, b, held_err, held, t0, t1, sides, None)
+        lam_t = costate(phase, i, c)
         # the switching costs along the path only for the final plan, which returns them
-        r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 5)
+        r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4)
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the
-        # shift's bisection needs neither; `i` is not batched, so under vmap this stays a cond)
+        # shift's bisection needs neither)
         e_held = jax.lax.cond(phase == 0, lambda: e,
                               lambda: held_piece_error(vp, dE, pid, target))
         # the shift: a piece's dE decreases as its shift grows (cheaper battery: discharge)
         a, b = narrow(a, b, 0.5 * (a + b), e > 0, phase == 0)
-        # the time split: joined(start) is `then` alone, joined(end) `first` alone
-        t0, t1 = narrow(t0, t1, (t0 + t1) // 2, (e_held > 0) == then_high, phase == 3)
-        # the scores of the sides (slots 0, 1) and the candidates (2-5)
-        slot = jnp.where(phase < 3, i - p_side, i - p_cand + 2)
-        keep = (phase == 1) | (phase == 2) | (phase == 4)
+        # the scores of the sides (slots 0, 1) and the candidates (2-5), the sides' plans
+        side = (phase == 1) | (phase == 2)
+        slot = jnp.where(side, i - p_side, i - p_cand + 2)
+        keep = side | (phase == 3)
         held_err = jnp.where(keep, held_err.at[slot].set(e_held), held_err)
         held = jnp.where(keep, held.at[slot].set(jnp.abs(e_held - e)), held)
-        return a, b, held_err, held, t0, t1, (r, lam_t)
+        sides = jnp.where(side, sides.at[jnp.clip(slot, 0, 1)].set(dE), sides)
+        return a, b, held_err, held, t0, t1, sides, (r, lam_t)
 
     half = jnp.full((K,), 1.5, dtype)
     scores = jnp.zeros((6, K), dtype)
     r0 = jax.eval_shape(lambda: _level1(vp, pred, lam, dt, params, fast, trac))
     out0 = (jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), r0),
             jnp.zeros((T,), dtype))
-    c = jax.lax.fori_loop(0, p_final + 1, step, (-half, half, scores, scores, start, end, out0))
+    c = jax.lax.fori_loop(0, p_final + 1, step,
+                          (-half, half, scores, scores, start, end, jnp.zeros((2, T), dtype),
+                           out0))
     return c[-1]
 
 

@@ -218,22 +218,91 @@ sustain = xla.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.
                                                                target))
 
 
+def ref_split(dE_first, dE_then, pid, target, then_high, E_max):
+    """The time split on two plans joined, by brute force: for each piece every step t_s in
+    it, the piece's end within [0, E_max] (`ref_battery_path`, from E_max / 2) of `first` up to
+    t_s and `then` from it. Returns (t0, t1) (K,): t0 the last t_s from the piece's start on
+    where the end is on `then`'s side of the target (then_high: above it), t1 the step after it
+    (the piece's end if there is none)."""
+    n, K = dE_first.shape[0], target.shape[0]
+    k = np.arange(n)
+    t0 = np.array([k[pid == p].min() if (pid == p).any() else n for p in range(K)])
+    t1 = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    for p in range(K):
+        for ts in range(t0[p] + 1, t1[p]):
+            _, E_end, goal = ref_battery_path(0.5 * E_max, E_max,
+                                              np.where(k < ts, dE_first, dE_then), pid, target)
+            if (E_end[p] - goal[p] > 0) != then_high[p]:
+                t1[p] = ts
+                break
+            t0[p] = ts
+    return t0, t1
+
+
+SPLIT_T, SPLIT_K = 40, 3
+split = xla.jit(S.split_sides)
+
+
+@settings(max_examples=40, deadline=None)
+@given(hst.data())
+def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
+    """`split_sides` against the brute force (`ref_split`) where one side's every step charges
+    at least as much as the other's, so that the joined end is monotone in t_s; with sides in
+    any order, it still ends on a crossing: t1 = t0 + 1 (a piece of steps), t0 on `then`'s side
+    (or the piece's start), t1 not (or the piece's end)."""
+    n, K = SPLIT_T, SPLIT_K
+    E_max = 2e6
+    vp = VP.replace(E_b_max=E_max, soc0=0.5)
+    cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
+    pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
+    floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
+        hst.floats(lo, hi, allow_nan=False), min_size=m, max_size=m)))
+    dE_then = floats(-3e5, 3e5, n)
+    gap = floats(0.0, 2e5, n)
+    ordered = data.draw(hst.booleans())
+    sign = np.where(floats(-1.0, 1.0, K) > 0, 1.0, -1.0)[pid]
+    dE_first = dE_then + sign * gap if ordered else floats(-3e5, 3e5, n)
+    target = floats(-6e5, 6e5, K)
+    E0 = 0.5 * E_max
+    _, E_then, goal = ref_battery_path(E0, E_max, dE_then, pid, target)
+    then_high = E_then - goal > 0
+    k = np.arange(n)
+    start = np.array([k[pid == p].min() if (pid == p).any() else n for p in range(K)])
+    end = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    t0, t1 = (np.asarray(x) for x in split(vp, jnp.asarray(dE_first), jnp.asarray(dE_then),
+                                            jnp.asarray(pid), jnp.asarray(target),
+                                            jnp.asarray(start, jnp.int32),
+                                            jnp.asarray(end, jnp.int32), jnp.asarray(then_high)))
+    want = ref_split(dE_first, dE_then, pid, target, then_high, E_max)
+    for p in range(K):
+        if end[p] <= start[p]:  # no steps: nothing uses the piece's split
+            continue
+        if ordered:
+            assert (t0[p], t1[p]) == (want[0][p], want[1][p]), p
+        assert t1[p] == t0[p] + 1 and start[p] <= t0[p] and t1[p] <= end[p]
+        for ts, side in ((t0[p], True), (t1[p], False)):
+            if start[p] < ts < end[p]:
+                _, E_end, goal = ref_battery_path(E0, E_max, np.where(k < ts, dE_first, dE_then),
+                                                  pid, target)
+                assert ((E_end[p] - goal[p] > 0) == then_high[p]) == side, (p, ts)
+
+
 def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     """`sustaining_level1`'s DPs one by one, each its own call, the logic between them in NumPy:
-    the shift's bisection, the two sides, the time split's bisection, the four candidates.
-    Returns (lambda_b (T,) of the final plan, the number of DPs run)."""
+    the shift's bisection, the two sides, the time split's bisection on their plans joined, the
+    four candidates. Returns (lambda_b (T,) of the final plan, the number of DPs run)."""
     lo_b, hi_b = l2.LAM_BRACKET
     lam, pid, target = np.broadcast_to(lam, (T,)), np.asarray(pid), np.asarray(target)
     K = target.shape[0]
     n_dp = [0]
 
-    def score(lam_t):  # (held error, what the limits hold) per piece
+    def score(lam_t):  # (held error, what the limits hold, the plan's steps' energy)
         r = level1(jnp.asarray(lam_t))
         dE = np.asarray(energy(r.mode, r.gear, r.P_b))
         n_dp[0] += 1
         e = np.bincount(pid, dE, K) - target
         _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max, dE, pid, target)
-        return e, E_end - goal, np.abs(E_end - goal - e)
+        return e, E_end - goal, np.abs(E_end - goal - e), dE
 
     shifted = lambda d: np.clip(lam + d[pid], lo_b, hi_b)  # noqa: E731
     a, b = np.full(K, -1.5), np.full(K, 1.5)
@@ -242,20 +311,23 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         pos = score(shifted(m))[0] > 0
         a, b = np.where(pos, m, a), np.where(pos, b, m)
     ja, jb = shifted(a - gap), shifted(b + gap)
-    (_, e_a, h_a), (_, e_b, h_b) = score(ja), score(jb)
+    (_, e_a, h_a, dE_a), (_, e_b, h_b, dE_b) = score(ja), score(jb)
     charge_first = h_b > h_a
     first, then = np.where(charge_first[pid], ja, jb), np.where(charge_first[pid], jb, ja)
     then_high = np.where(charge_first, e_b, e_a) > 0
     k = np.arange(T)
     joined = lambda ts: np.where(k < ts[pid], first, then)  # noqa: E731
+    d_first, d_then = (np.where(charge_first[pid], x, y) for x, y in ((dE_a, dE_b), (dE_b, dE_a)))
     t0 = np.array([k[pid == p].min() if (pid == p).any() else T for p in range(K)])
     t1 = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
     for _ in range(S._split_bisections(T)):
         m = (t0 + t1) // 2
-        on = (score(joined(m))[1] > 0) == then_high
+        _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max,
+                                          np.where(k < m[pid], d_first, d_then), pid, target)
+        on = (E_end - goal > 0) == then_high
         t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
     cands = [shifted(a), shifted(b), joined(t0), joined(t1)]
-    errs, held = np.array([score(c)[1:] for c in cands]).transpose(1, 0, 2)
+    errs, held = np.array([score(c)[1:3] for c in cands]).transpose(1, 0, 2)
     near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * VP.E_b_max
     best = np.argmin(np.where(near, held + 1e-3 * np.abs(errs), np.inf), axis=0)
     return np.array(cands)[best[pid], k], n_dp[0]
