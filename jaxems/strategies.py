@@ -502,8 +502,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         charge_first = held[1] > held[0]
         return charge_first, jnp.where(charge_first, held_err[1], held_err[0]) > 0
 
-    def costate(phase, i, c):  # (T,) the costate of DP number i
-        a, b, held_err, held, t0, t1, _, _ = c
+    def costate(phase, i, a, b, held_err, held, t0, t1):  # (T,) the costate of DP number i
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
@@ -521,21 +520,21 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb,
                                 cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
 
-    def split(c):  # the time split on the sides' plans, before the candidates
-        _, _, held_err, held, t0, t1, sides, _ = c
+    def split(held_err, held, t0, t1, sides):  # the time split on the sides' plans (dE: (2, T))
         charge_first, then_high = order(held_err, held)
         first = jnp.where(charge_first[pid], sides[0], sides[1])
         then = jnp.where(charge_first[pid], sides[1], sides[0])
         return split_sides(vp, first, then, pid, target, t0, t1, then_high)
 
     def step(i, c):
+        a, b, held_err, held, t0, t1, sides, _ = c
         # 0 the shift's bisection, 1 and 2 the sides, 3 the candidates, 4 the final plan
         phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_cand, p_final]))
-        # `i` is not batched, so under vmap these stay conds
-        t0, t1 = jax.lax.cond(i == p_cand, split, lambda c: c[4:6], c)
-        a, b, held_err, held, _, _, sides, _ = c
-        c = (a, b, held_err, held, t0, t1, sides, None)
-        lam_t = costate(phase, i, c)
+        # the time split once, before the candidates (`i` is not batched, so under vmap this
+        # and the cond below stay conds)
+        t0, t1 = jax.lax.cond(i == p_cand, split, lambda *_: (t0, t1), held_err, held, t0, t1,
+                              sides)
+        lam_t = costate(phase, i, a, b, held_err, held, t0, t1)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4)
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
