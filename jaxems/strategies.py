@@ -465,8 +465,9 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     Where a piece's energy jumps with the shift (a guard, as in I2 of Level 2) the plans either
     side are joined in time within the piece: one side up to a step t_s and the other after
     (I2b's single switch), t_s found by bisection on the two sides' plans joined
-    (`split_sides`: no DP; the DP of a joined costate differs from the joined plans only
-    around t_s, where its switching costs weigh the two sides together). The side whose plan
+    (`split_sides`: no DP; the DP of a joined costate mostly follows the joined plans, but its
+    switching costs weigh the two sides together, and on Urban Delivery one piece's DP plan
+    jumps by 1.6 MJ between neighbouring t_s; the candidates below are DPs). The side whose plan
     alone the battery's limits hold less goes first: where the plan's battery is held, the plant
     cannot do what the plan does (on the short track's first climb the discharging side first
     emptied the battery, and the plant then cruised on the engine where the plan cruised on the
