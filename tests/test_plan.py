@@ -218,6 +218,16 @@ sustain = xla.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.
                                                                target))
 
 
+def piece_bounds(pid, K):
+    """(start, end) (K,) of each piece's steps in pid (T,): its first step and one past its
+    last; an empty piece (T, 0), as `sustaining_level1` starts its time split."""
+    n = pid.shape[0]
+    k = np.arange(n)
+    start = np.array([k[pid == p].min() if (pid == p).any() else n for p in range(K)])
+    end = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    return start, end
+
+
 def ref_split(dE_first, dE_then, pid, target, then_high, E_max):
     """The time split on two plans joined, by brute force: for each piece every step t_s in
     it, the piece's end within [0, E_max] (`ref_battery_path`, from E_max / 2) of `first` up to
@@ -226,8 +236,7 @@ def ref_split(dE_first, dE_then, pid, target, then_high, E_max):
     (the piece's end if there is none)."""
     n, K = dE_first.shape[0], target.shape[0]
     k = np.arange(n)
-    t0 = np.array([k[pid == p].min() if (pid == p).any() else n for p in range(K)])
-    t1 = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    t0, t1 = piece_bounds(pid, K)
     for p in range(K):
         for ts in range(t0[p] + 1, t1[p]):
             _, E_end, goal = ref_battery_path(0.5 * E_max, E_max,
@@ -267,8 +276,7 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
     _, E_then, goal = ref_battery_path(E0, E_max, dE_then, pid, target)
     then_high = E_then - goal > 0
     k = np.arange(n)
-    start = np.array([k[pid == p].min() if (pid == p).any() else n for p in range(K)])
-    end = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    start, end = piece_bounds(pid, K)
     t0, t1 = (np.asarray(x) for x in split(vp, jnp.asarray(dE_first), jnp.asarray(dE_then),
                                             jnp.asarray(pid), jnp.asarray(target),
                                             jnp.asarray(start, jnp.int32),
@@ -318,8 +326,7 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     k = np.arange(T)
     joined = lambda ts: np.where(k < ts[pid], first, then)  # noqa: E731
     d_first, d_then = (np.where(charge_first[pid], x, y) for x, y in ((dE_a, dE_b), (dE_b, dE_a)))
-    t0 = np.array([k[pid == p].min() if (pid == p).any() else T for p in range(K)])
-    t1 = np.array([k[pid == p].max() + 1 if (pid == p).any() else 0 for p in range(K)])
+    t0, t1 = piece_bounds(pid, K)
     for _ in range(S._split_bisections(T)):
         m = (t0 + t1) // 2
         _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max,
