@@ -11,7 +11,9 @@ run before JAX's backend starts (before the first array, `jax.devices()` or jitt
   `jax.shard_map` on a 1-D mesh (axis ``"batch"``); with one device there is no shard_map;
 - on each device `jax.lax.map(..., batch_size=c)` runs the device's share in vmapped chunks of
   c <= C items one after the other, so the working memory of a device is that of c items, not
-  of its whole share (the outputs of all items are still kept: B x the output size);
+  of its whole share (the outputs of all items are still kept: B x the output size); chunks of
+  one item run unbatched (`lax.map` without a batch size: plain while loops, which a vmapped
+  chunk, even of one, runs as batched loops of selects);
 - the batch is padded by repeating its last item so that every device gets the same whole
   number of chunks; padded results are dropped. The chunk size c is balanced: with
   b = ceil(B / n_devices) items per device and k = ceil(b / C) chunks, c = ceil(b / k), so the
@@ -157,7 +159,9 @@ def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool,
 
     def local(shared, xs, c):
         g = (lambda x: fn(shared, x)) if with_shared else fn
-        return jax.lax.map(g, xs, batch_size=c)
+        # chunks of one run unbatched: `lax.map` with a batch size vmaps even one item, and a
+        # vmapped while loop (Level 2's rounds and bisections) costs more than a plain one
+        return jax.lax.map(g, xs, batch_size=c if c > 1 else None)
 
     def run(shared, xs):
         B = jax.tree_util.tree_leaves(xs)[0].shape[0]

@@ -1232,8 +1232,11 @@ def _fields(m: Metrics, vp) -> dict:
 # vehicles vmapped at once per device by default: the multilevel iteration runs Level 2's
 # rounds and bisections until a chunk's slowest member is done, so small chunks waste less
 # (LongHaul, 32 configurations of 1-8 MJ, 2 devices: 0.85 s of CPU per configuration in
-# chunks of 4 against 1.08-1.11 s in chunks of 8 or 16); the others vectorise best in 64
-CHUNK = {"multilevel": 4, "multilevel-eco": 4}
+# chunks of 4 against 1.08-1.11 s in chunks of 8 or 16), and a chunk of one runs unbatched
+# (`shard.map_batch`), with plain while loops: 0.58-0.60 s against 0.65-0.69 in chunks of 4;
+# the MPC, a Level 2 solve at every step, 17.5 s against 53-64 s in chunks of 1 (vmapped) or 2;
+# multilevel-eco 10.1 s against 12.9 s in chunks of 4. The others vectorise best in 64
+CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1}
 DEFAULT_CHUNK = 64
 
 
