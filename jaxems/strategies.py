@@ -503,13 +503,14 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         charge_first = held[1] > held[0]
         return charge_first, jnp.where(charge_first, held_err[1], held_err[0]) > 0
 
+    def first_then(charge_first, x_a, x_b):  # (first, then) (T,) of the sides' x_a, x_b (T,)
+        return (jnp.where(charge_first[pid], x_a, x_b), jnp.where(charge_first[pid], x_b, x_a))
+
     def costate(phase, i, a, b, held_err, held, t0, t1):  # (T,) the costate of DP number i
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
-        charge_first, _ = order(held_err, held)
-        first = jnp.where(charge_first[pid], ja, jb)
-        then = jnp.where(charge_first[pid], jb, ja)
+        first, then = first_then(order(held_err, held)[0], ja, jb)
 
         def joined(ts):  # ts: (K,) the step of each piece where `then` takes over from `first`
             return jnp.where(k < ts[pid], first, then)
@@ -523,8 +524,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
 
     def split(held_err, held, t0, t1, sides):  # the time split on the sides' plans (dE: (2, T))
         charge_first, then_high = order(held_err, held)
-        first = jnp.where(charge_first[pid], sides[0], sides[1])
-        then = jnp.where(charge_first[pid], sides[1], sides[0])
+        first, then = first_then(charge_first, sides[0], sides[1])
         return split_sides(vp, first, then, pid, target, t0, t1, then_high)
 
     def step(i, c):

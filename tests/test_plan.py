@@ -228,20 +228,28 @@ def piece_bounds(pid, K):
     return start, end
 
 
+def ref_joined_error(dE_first, dE_then, pid, target, ts, E0, E_max):
+    """(K,) each piece's end within [0, E_max] (`ref_battery_path`, from E0) minus its goal,
+    for the plan `first` (dE_first: (T,)) up to the piece's step ts (K,) and `then` after."""
+    k = np.arange(dE_first.shape[0])
+    joined = np.where(k < np.asarray(ts)[pid], dE_first, dE_then)
+    _, E_end, goal = ref_battery_path(E0, E_max, joined, pid, target)
+    return E_end - goal
+
+
 def ref_split(dE_first, dE_then, pid, target, then_high, E_max):
     """The time split on two plans joined, by brute force: for each piece every step t_s in
     it, the piece's end within [0, E_max] (`ref_battery_path`, from E_max / 2) of `first` up to
     t_s and `then` from it. Returns (t0, t1) (K,): t0 the last t_s from the piece's start on
     where the end is on `then`'s side of the target (then_high: above it), t1 the step after it
     (the piece's end if there is none)."""
-    n, K = dE_first.shape[0], target.shape[0]
-    k = np.arange(n)
+    K = target.shape[0]
     t0, t1 = piece_bounds(pid, K)
     for p in range(K):
         for ts in range(t0[p] + 1, t1[p]):
-            _, E_end, goal = ref_battery_path(0.5 * E_max, E_max,
-                                              np.where(k < ts, dE_first, dE_then), pid, target)
-            if (E_end[p] - goal[p] > 0) != then_high[p]:
+            e = ref_joined_error(dE_first, dE_then, pid, target, np.full(K, ts), 0.5 * E_max,
+                                 E_max)
+            if (e[p] > 0) != then_high[p]:
                 t1[p] = ts
                 break
             t0[p] = ts
@@ -275,7 +283,6 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
     E0 = 0.5 * E_max
     _, E_then, goal = ref_battery_path(E0, E_max, dE_then, pid, target)
     then_high = E_then - goal > 0
-    k = np.arange(n)
     start, end = piece_bounds(pid, K)
     t0, t1 = (np.asarray(x) for x in split(vp, jnp.asarray(dE_first), jnp.asarray(dE_then),
                                             jnp.asarray(pid), jnp.asarray(target),
@@ -290,9 +297,8 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
         assert t1[p] == t0[p] + 1 and start[p] <= t0[p] and t1[p] <= end[p]
         for ts, side in ((t0[p], True), (t1[p], False)):
             if start[p] < ts < end[p]:
-                _, E_end, goal = ref_battery_path(E0, E_max, np.where(k < ts, dE_first, dE_then),
-                                                  pid, target)
-                assert ((E_end[p] - goal[p] > 0) == then_high[p]) == side, (p, ts)
+                e = ref_joined_error(dE_first, dE_then, pid, target, np.full(K, ts), E0, E_max)
+                assert ((e[p] > 0) == then_high[p]) == side, (p, ts)
 
 
 def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
@@ -329,9 +335,8 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     t0, t1 = piece_bounds(pid, K)
     for _ in range(S._split_bisections(T)):
         m = (t0 + t1) // 2
-        _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max,
-                                          np.where(k < m[pid], d_first, d_then), pid, target)
-        on = (E_end - goal > 0) == then_high
+        e = ref_joined_error(d_first, d_then, pid, target, m, VP.soc0 * VP.E_b_max, VP.E_b_max)
+        on = (e > 0) == then_high
         t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
     cands = [shifted(a), shifted(b), joined(t0), joined(t1)]
     errs, held = np.array([score(c)[1:3] for c in cands]).transpose(1, 0, 2)
