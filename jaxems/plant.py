@@ -36,6 +36,7 @@ at the step's start: 1/2 m (v1^2 - v0^2) = (P_wheel dt) - F_0 ds,  ds = (v0 + v1
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -47,6 +48,7 @@ from . import switching as sw
 from .levels import powersplit as ps
 from .levels.velocity import V_CRAWL, last_node, node_rise
 from .params import VehicleParams
+from .shard import unbatched_or
 
 MO = ps.MO
 
@@ -355,6 +357,52 @@ def _speed_after(vp, v0, F0, P_wheel, dt):
     return jnp.where(disc > 0, jnp.maximum(v1, 0.0), 0.0)
 
 
+def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
+                    at_rest, dt):
+    """Level 0 protection: the state (index mode * n_gears + gear) the driveline takes.
+
+    The requested state s_req where it runs at v_op and delivers P_need (a switch opens the
+    driveline: switched into, it must also at v_after, the speed left after the open time), or
+    at rest; else stay in s_cur where it still serves (no hunting), else the requested mode in
+    the gear that serves at least H (at lam), else the state of least H that serves, else the
+    most capable. Every state is evaluated (the form for a batch: `protected_state_lazy`
+    skips the table where the request serves). Scalars in, int32 () out."""
+    n_g = vp.gear_ratio.shape[-1]
+    r_now = all_ranges(vp, v_op)
+    ok_now = capable(vp, r_now, E_b, P_need, dt)
+    ok_after = ok_now & capable(vp, all_ranges(vp, v_after), E_b, P_need, dt)
+    req_ok = jnp.where(s_req == s_cur, ok_now[s_req], ok_after[s_req])
+    table = ps.mode_gear_split(vp, P_need, v_op, lam)
+    Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
+    best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
+    best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
+    best = jnp.where(jnp.any(ok_after), best_after,
+                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(r_now))))
+    same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)
+    in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
+    alt = jnp.argmin(in_mode)
+    s_alt = jnp.where(ok_now[s_cur], s_cur, jnp.where(jnp.isfinite(in_mode[alt]), alt, best))
+    return jnp.where(req_ok | at_rest, s_req, s_alt).astype(jnp.int32)
+
+
+def protected_state_lazy(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
+                         at_rest, dt):
+    """`protected_state`, with only the requested state evaluated where it serves (most
+    steps): every state's ranges and split (`protected_state`) only where it does not, by
+    `lax.cond`, which a run of one configuration skips (under `vmap` a cond on batched values
+    runs both branches: `plant` then uses `protected_state`). The same result."""
+    n_g = vp.gear_ratio.shape[-1]
+
+    def serves(v):  # the requested state runs at speed v and delivers P_need
+        return capable(vp, state_ranges(vp, s_req // n_g, s_req % n_g, v), E_b, P_need, dt)
+
+    ok_req = serves(v_op)
+    req_ok = jnp.where(s_req == s_cur, ok_req, ok_req & serves(v_after))
+    return jax.lax.cond(req_ok | at_rest, lambda *_: jnp.asarray(s_req, jnp.int32),
+                        functools.partial(protected_state, dt=dt),
+                        vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
+
+
 # ------------------------------------------------------------------------------ the step
 def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k):
     st, cparams, cstate = carry
@@ -412,24 +460,10 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # a switch opens the driveline: the state switched into must still run after the speed
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
-    r_now = all_ranges(vp, v_op)
-    ok_now = capable(vp, r_now, st.E_b, P_need, dt)
-    ok_after = ok_now & capable(vp, all_ranges(vp, jnp.maximum(v_op - dv_sw, 0.1)), st.E_b,
-                                P_need, dt)
-    req_ok = jnp.where(s_req == s_cur, ok_now[s_req], ok_after[s_req])
-    table = ps.mode_gear_split(vp, P_need, v_op, lam)
-    Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
-    best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
-    best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
-    best = jnp.where(jnp.any(ok_after), best_after,
-                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(r_now))))
-    # a requested state that is not safe to switch into: stay where the current state still
-    # serves (no hunting), else keep the requested mode in a gear that serves, else the best
-    same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)
-    in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
-    alt = jnp.argmin(in_mode)
-    s_alt = jnp.where(ok_now[s_cur], s_cur, jnp.where(jnp.isfinite(in_mode[alt]), alt, best))
-    s_new = jnp.where(req_ok | at_rest, s_req, s_alt)
+    v_after = jnp.maximum(v_op - dv_sw, 0.1)
+    protect = unbatched_or(functools.partial(protected_state_lazy, dt=dt),
+                           functools.partial(protected_state, dt=dt))
+    s_new = protect(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
     req_mode = (s_new // n_g).astype(st.mode.dtype)
     req_gear = (s_new % n_g).astype(st.gear.dtype)
 

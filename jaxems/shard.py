@@ -182,6 +182,25 @@ def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool,
     return jit(run, elemental=elemental)
 
 
+def unbatched_or(fn: Callable, batched: Callable) -> Callable:
+    """`fn`, except under `jax.vmap`, where `batched` is vmapped in its place.
+
+    For a function of one item with a `lax.cond` that a run of one item skips and a vmapped
+    run evaluates on both branches (a cond on batched values is a select): `batched` computes
+    the same values in the form that suits a batch. Both take the same positional arguments
+    (arrays or pytrees of arrays) and must return the same values (tests compare them).
+    Built on `jax.custom_batching.custom_vmap`, so no reverse-mode autodiff."""
+    f = jax.custom_batching.custom_vmap(fn)
+
+    @f.def_vmap
+    def rule(axis_size, in_batched, *args):
+        axes = tuple(jax.tree.map(lambda b: 0 if b else None, list(in_batched)))
+        out = jax.vmap(batched, in_axes=axes, axis_size=axis_size)(*args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return f
+
+
 def _check_batch(args) -> int:
     leaves, _ = jax.tree_util.tree_flatten_with_path(args)
     if not leaves:

@@ -377,6 +377,30 @@ def test_all_ranges_equal_each_states_own(v):
                 s, name)
 
 
+_protect = {lazy: xla.jit(functools.partial(
+    P.protected_state_lazy if lazy else P.protected_state, dt=1.0)) for lazy in (True, False)}
+_S = ps.N_MODES * VP.gear_ratio.shape[0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(v=st.floats(0.0, 30.0), dv=st.floats(0.0, 3.0), P_need=st.floats(-50e3, 400e3),
+       E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0),
+       s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), at_rest=st.booleans())
+def test_lazy_protection_is_the_full_one(v, dv, P_need, E_frac, lam, s_req, s_cur, at_rest):
+    """Level 0 with only the requested state evaluated where it serves gives the state of the
+    full evaluation; so does either form under vmap (where the plant runs the full one)."""
+    args = (VP, E_frac * VP.E_b_max, P_need, v, max(v - dv, 0.1), lam, s_req, s_cur, at_rest)
+    want = int(_protect[False](*args))
+    assert int(_protect[True](*args)) == want
+    # under vmap `unbatched_or` runs the full form: the same, element by element
+    prot = P.unbatched_or(functools.partial(P.protected_state_lazy, dt=1.0),
+                          functools.partial(P.protected_state, dt=1.0))
+    E = jnp.asarray([0.0, E_frac * VP.E_b_max, VP.E_b_max])
+    got = jax.vmap(lambda e: prot(*args[:1], e, *args[2:]))(E)
+    for e, g in zip(E, np.asarray(got), strict=True):
+        assert int(g) == int(_protect[True](VP, e, *args[2:]))
+
+
 _block_search = {side: xla.jit(functools.partial(P.block_search, side=side))
                  for side in ("left", "right")}
 _interp = xla.jit(P._interp)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxems.shard import backends_started, chunk_plan, map_batch, use_host_devices
+from jaxems.shard import backends_started, chunk_plan, map_batch, unbatched_or, use_host_devices
 
 TRACES = [0]
 
@@ -168,3 +168,20 @@ def test_two_host_devices_subprocess():
                        timeout=120)
     assert r.returncode == 0, r.stderr[-3000:]
     assert r.stdout.strip().splitlines()[-1] == "OK 2"
+
+
+def test_unbatched_or_takes_the_batched_form_under_vmap_only():
+    # two forms that differ, to see which one runs: the first alone, the second under vmap
+    # (with an unbatched argument, inside jit, scan and lax.map's chunks)
+    f = unbatched_or(lambda x, k: x + k, lambda x, k: x + 10 * k)
+    x = jnp.arange(4.0)
+    assert float(jax.jit(f)(x[1], 1.0)) == 2.0
+    np.testing.assert_array_equal(jax.vmap(f, in_axes=(0, None))(x, 1.0), x + 10)
+    np.testing.assert_array_equal(jax.vmap(f)(x, x), 11 * x)
+
+    def body(c, xi):
+        return c, f(xi, 1.0)
+
+    np.testing.assert_array_equal(jax.jit(lambda a: jax.lax.scan(body, 0.0, a)[1])(x), x + 1)
+    np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x, batch_size=2), x + 10)
+    np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x), x + 1)
