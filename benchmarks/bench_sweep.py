@@ -342,7 +342,8 @@ def main(argv=None) -> int:
                     help="host devices for the sharded path, or a comma list to compare")
     ap.add_argument("--chunk", type=int, default=None,
                     help="most configurations vmapped at once per device (default: each "
-                         "strategy's, strategies.default_chunk: 4 for multilevel, else 64)")
+                         "strategy's, strategies.default_chunk: 1, unbatched, for "
+                         "multilevel, multilevel-mpc and multilevel-eco, else 64)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--plain", action="store_true", help="time simulate_batch only")
     g.add_argument("--compare-plain", action="store_true",
