@@ -48,7 +48,7 @@ from . import switching as sw
 from .levels import powersplit as ps
 from .levels.velocity import V_CRAWL, last_node, node_rise
 from .params import VehicleParams
-from .shard import unbatched_or
+from .shard import shortcut
 
 MO = ps.MO
 
@@ -365,8 +365,8 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     driveline: switched into, it must also at v_after, the speed left after the open time), or
     at rest; else stay in s_cur where it still serves (no hunting), else the requested mode in
     the gear that serves at least H (at lam), else the state of least H that serves, else the
-    most capable. Every state is evaluated (the form for a batch: `protected_state_lazy`
-    skips the table where the request serves). Scalars in, int32 () out."""
+    most capable. Every state is evaluated; the plant calls it only where the requested state
+    does not serve (`requested_serves`, `shard.shortcut`). Scalars in, int32 () out."""
     n_g = vp.gear_ratio.shape[-1]
     r_now = all_ranges(vp, v_op)
     ok_now = capable(vp, r_now, E_b, P_need, dt)
@@ -385,12 +385,11 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     return jnp.where(req_ok | at_rest, s_req, s_alt).astype(jnp.int32)
 
 
-def protected_state_lazy(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
-                         at_rest, dt):
-    """`protected_state`, with only the requested state evaluated where it serves (most
-    steps): every state's ranges and split (`protected_state`) only where it does not, by
-    `lax.cond`, which a run of one configuration skips (under `vmap` a cond on batched values
-    runs both branches: `plant` then uses `protected_state`). The same result."""
+def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
+                     at_rest, dt):
+    """(known, s_req): whether `protected_state` keeps the requested state, from that state's
+    ranges alone (at rest, or it serves: at v_op, and at v_after where it is a switch). Where
+    known is False the full evaluation decides (`shard.shortcut`)."""
     n_g = vp.gear_ratio.shape[-1]
 
     def serves(v):  # the requested state runs at speed v and delivers P_need
@@ -398,9 +397,7 @@ def protected_state_lazy(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_r
 
     ok_req = serves(v_op)
     req_ok = jnp.where(s_req == s_cur, ok_req, ok_req & serves(v_after))
-    return jax.lax.cond(req_ok | at_rest, lambda *_: jnp.asarray(s_req, jnp.int32),
-                        functools.partial(protected_state, dt=dt),
-                        vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
+    return req_ok | at_rest, jnp.asarray(s_req, jnp.int32)
 
 
 # ------------------------------------------------------------------------------ the step
@@ -461,8 +458,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
     v_after = jnp.maximum(v_op - dv_sw, 0.1)
-    protect = unbatched_or(functools.partial(protected_state_lazy, dt=dt),
-                           functools.partial(protected_state, dt=dt))
+    protect = shortcut(functools.partial(requested_serves, dt=dt),
+                       functools.partial(protected_state, dt=dt))
     s_new = protect(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
     req_mode = (s_new // n_g).astype(st.mode.dtype)
     req_gear = (s_new % n_g).astype(st.gear.dtype)

@@ -182,20 +182,36 @@ def _program(fn: Callable, chunk: int | None, devices: tuple, with_shared: bool,
     return jit(run, elemental=elemental)
 
 
-def unbatched_or(fn: Callable, batched: Callable) -> Callable:
-    """`fn`, except under `jax.vmap`, where `batched` is vmapped in its place.
+def shortcut(check: Callable, full: Callable) -> Callable:
+    """A function of one item that `check` answers cheaply where it can.
 
-    For a function of one item with a `lax.cond` that a run of one item skips and a vmapped
-    run evaluates on both branches (a cond on batched values is a select): `batched` computes
-    the same values in the form that suits a batch. Both take the same positional arguments
-    (arrays or pytrees of arrays) and must return the same values (tests compare them).
-    Built on `jax.custom_batching.custom_vmap`, so no reverse-mode autodiff."""
-    f = jax.custom_batching.custom_vmap(fn)
+    check(*args) -> (known, value): known a bool (); where it is False the answer is
+    full(*args) instead (the same arguments: arrays or pytrees of arrays; `full` returns
+    `value`'s structure and dtypes, and must agree with it where known). A run of one item calls
+    `full` only where needed (`lax.cond`). Under `jax.vmap` a cond on batched values would
+    run both branches for every item at every call; here `full` runs, vmapped over the whole
+    batch, only at calls where some item needs it (one cond on the batch), and its values are
+    taken for those items. Built on `jax.custom_batching.custom_vmap`: no reverse-mode
+    autodiff."""
+
+    def one(*args):
+        known, value = check(*args)
+        return jax.lax.cond(known, lambda: value, lambda: full(*args))
+
+    f = jax.custom_batching.custom_vmap(one)
 
     @f.def_vmap
     def rule(axis_size, in_batched, *args):
         axes = tuple(jax.tree.map(lambda b: 0 if b else None, list(in_batched)))
-        out = jax.vmap(batched, in_axes=axes, axis_size=axis_size)(*args)
+        known, value = jax.vmap(check, in_axes=axes, axis_size=axis_size)(*args)
+
+        def fill():
+            out = jax.vmap(full, in_axes=axes, axis_size=axis_size)(*args)
+            pick = lambda v, w: jnp.where(  # noqa: E731
+                jnp.reshape(known, known.shape + (1,) * (v.ndim - 1)), v, w)
+            return jax.tree.map(pick, value, out)
+
+        out = jax.lax.cond(jnp.all(known), lambda: value, fill)
         return out, jax.tree.map(lambda _: True, out)
 
     return f

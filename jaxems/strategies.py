@@ -1235,8 +1235,13 @@ def _fields(m: Metrics, vp) -> dict:
 # chunks of 4 against 1.08-1.11 s in chunks of 8 or 16), and a chunk of one runs unbatched
 # (`shard.map_batch`), with plain while loops: 0.58-0.60 s against 0.65-0.69 in chunks of 4;
 # the MPC, a Level 2 solve at every step, 17.5 s against 53-64 s in chunks of 1 (vmapped) or 2;
-# multilevel-eco 10.1 s against 12.9 s in chunks of 4. The others vectorise best in 64
-CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1}
+# multilevel-eco 10.1 s against 12.9 s in chunks of 4. Conventional and baseline run the
+# plant's full Level 0 only at steps where some vehicle of the chunk needs it
+# (`shard.shortcut`), so smaller chunks skip it more often: batch 256, chunks of 4 / 8 / 16 /
+# 32 / 64 / 128, 103 / 126 / 132 / 119 / 119 / 107 configurations/s (conventional) and 83 /
+# 113 / 113 / 92 / 80 / 81 (baseline). The others (dp-bound) vectorise best in 64
+CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1, "conventional": 16,
+         "baseline": 16}
 DEFAULT_CHUNK = 64
 
 

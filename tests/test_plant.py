@@ -377,8 +377,12 @@ def test_all_ranges_equal_each_states_own(v):
                 s, name)
 
 
-_protect = {lazy: xla.jit(functools.partial(
-    P.protected_state_lazy if lazy else P.protected_state, dt=1.0)) for lazy in (True, False)}
+_protect_full = xla.jit(functools.partial(P.protected_state, dt=1.0))
+_protect = P.shortcut(functools.partial(P.requested_serves, dt=1.0),
+                      functools.partial(P.protected_state, dt=1.0))
+_protect_one = xla.jit(_protect)
+_protect_vmap = xla.jit(jax.vmap(_protect, in_axes=(None, 0, None, None, None, None, 0, None,
+                                                     None)))
 _S = ps.N_MODES * VP.gear_ratio.shape[0]
 
 
@@ -386,19 +390,21 @@ _S = ps.N_MODES * VP.gear_ratio.shape[0]
 @given(v=st.floats(0.0, 30.0), dv=st.floats(0.0, 3.0), P_need=st.floats(-50e3, 400e3),
        E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0),
        s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), at_rest=st.booleans())
-def test_lazy_protection_is_the_full_one(v, dv, P_need, E_frac, lam, s_req, s_cur, at_rest):
-    """Level 0 with only the requested state evaluated where it serves gives the state of the
-    full evaluation; so does either form under vmap (where the plant runs the full one)."""
+def test_protection_with_its_shortcut_is_the_full_one(v, dv, P_need, E_frac, lam, s_req, s_cur,
+                                                      at_rest):
+    """Level 0 decided from the requested state alone where it serves, and by every state
+    where it does not, gives the state of the full evaluation: one configuration, and under
+    vmap (a batch where some requests serve and some do not, or all do)."""
     args = (VP, E_frac * VP.E_b_max, P_need, v, max(v - dv, 0.1), lam, s_req, s_cur, at_rest)
-    want = int(_protect[False](*args))
-    assert int(_protect[True](*args)) == want
-    # under vmap `unbatched_or` runs the full form: the same, element by element
-    prot = P.unbatched_or(functools.partial(P.protected_state_lazy, dt=1.0),
-                          functools.partial(P.protected_state, dt=1.0))
+    want = int(_protect_full(*args))
+    known, s = P.requested_serves(*args, dt=1.0)
+    assert int(s) == s_req and (not bool(known) or want == s_req)
+    assert int(_protect_one(*args)) == want
     E = jnp.asarray([0.0, E_frac * VP.E_b_max, VP.E_b_max])
-    got = jax.vmap(lambda e: prot(*args[:1], e, *args[2:]))(E)
-    for e, g in zip(E, np.asarray(got), strict=True):
-        assert int(g) == int(_protect[True](VP, e, *args[2:]))
+    reqs = jnp.asarray([s_req, s_cur, s_req], jnp.int32)
+    got = _protect_vmap(VP, E, *args[2:6], reqs, *args[7:])
+    for e, r, g in zip(E, reqs, np.asarray(got), strict=True):
+        assert int(g) == int(_protect_full(VP, e, *args[2:6], r, *args[7:]))
 
 
 _block_search = {side: xla.jit(functools.partial(P.block_search, side=side))

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxems.shard import backends_started, chunk_plan, map_batch, unbatched_or, use_host_devices
+from jaxems.shard import backends_started, chunk_plan, map_batch, shortcut, use_host_devices
 
 TRACES = [0]
 
@@ -170,18 +170,35 @@ def test_two_host_devices_subprocess():
     assert r.stdout.strip().splitlines()[-1] == "OK 2"
 
 
-def test_unbatched_or_takes_the_batched_form_under_vmap_only():
-    # two forms that differ, to see which one runs: the first alone, the second under vmap
-    # (with an unbatched argument, inside jit, scan and lax.map's chunks)
-    f = unbatched_or(lambda x, k: x + k, lambda x, k: x + 10 * k)
-    x = jnp.arange(4.0)
-    assert float(jax.jit(f)(x[1], 1.0)) == 2.0
-    np.testing.assert_array_equal(jax.vmap(f, in_axes=(0, None))(x, 1.0), x + 10)
-    np.testing.assert_array_equal(jax.vmap(f)(x, x), 11 * x)
+def test_shortcut_runs_the_full_form_only_where_needed():
+    # check knows the answer (x + 1) for x >= 0; full (x + 100) counts its runs
+    runs = []
+
+    def full(x, k):
+        jax.debug.callback(lambda: runs.append(1))
+        return x + 100 * k
+
+    f = shortcut(lambda x, k: (x >= 0, x + k), full)
+    want = lambda x: np.where(x >= 0, x + 1, x + 100)  # noqa: E731
+    one = jax.jit(f)
+    assert float(one(2.0, 1.0)) == 3.0 and not runs
+    assert float(one(-2.0, 1.0)) == 98.0 and len(runs) == 1
+    # under vmap (an unbatched argument; inside jit, scan and lax.map's chunks): full runs
+    # once per call where some item needs it, never where none does
+    batched = jax.jit(jax.vmap(f, in_axes=(0, None)))
+    runs.clear()
+    np.testing.assert_array_equal(batched(jnp.arange(4.0), 1.0), np.arange(4.0) + 1)
+    assert not runs
+    x = jnp.array([1.0, -1.0, 2.0, -3.0])
+    np.testing.assert_array_equal(batched(x, 1.0), want(np.asarray(x)))
+    assert len(runs) == 1
+    np.testing.assert_array_equal(jax.vmap(f)(x, jnp.ones(4)), want(np.asarray(x)))
 
     def body(c, xi):
         return c, f(xi, 1.0)
 
-    np.testing.assert_array_equal(jax.jit(lambda a: jax.lax.scan(body, 0.0, a)[1])(x), x + 1)
-    np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x, batch_size=2), x + 10)
-    np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x), x + 1)
+    np.testing.assert_array_equal(jax.jit(lambda a: jax.lax.scan(body, 0.0, a)[1])(x),
+                                  want(np.asarray(x)))
+    for bs in (None, 2):
+        np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x, batch_size=bs),
+                                      want(np.asarray(x)))
