@@ -363,15 +363,15 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
 
     The requested state s_req where it runs at v_op and delivers P_need (a switch opens the
     driveline: switched into, it must also at v_after, the speed left after the open time), or
-    at rest; else stay in s_cur where it still serves (no hunting), else the requested mode in
-    the gear that serves at least H (at lam), else the state of least H that serves, else the
-    most capable. Every state is evaluated; the plant calls it only where the requested state
-    does not serve (`requested_serves`, `shard.shortcut`). Scalars in, int32 () out."""
+    at rest (`requested_serves`); else stay in s_cur where it still serves (no hunting), else
+    the requested mode in the gear of least H (at lam) that serves, else the state of least H
+    that serves, else the most capable. Every state is evaluated; the plant calls it only
+    where the requested state does not serve (`shard.shortcut`). Scalars in, int32 () out."""
     n_g = vp.gear_ratio.shape[-1]
+    keep, _ = requested_serves(vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt)
     r_now = all_ranges(vp, v_op)
     ok_now = capable(vp, r_now, E_b, P_need, dt)
     ok_after = ok_now & capable(vp, all_ranges(vp, v_after), E_b, P_need, dt)
-    req_ok = jnp.where(s_req == s_cur, ok_now[s_req], ok_after[s_req])
     table = ps.mode_gear_split(vp, P_need, v_op, lam)
     Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
     best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
@@ -382,7 +382,7 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
     alt = jnp.argmin(in_mode)
     s_alt = jnp.where(ok_now[s_cur], s_cur, jnp.where(jnp.isfinite(in_mode[alt]), alt, best))
-    return jnp.where(req_ok | at_rest, s_req, s_alt).astype(jnp.int32)
+    return jnp.where(keep, s_req, s_alt).astype(jnp.int32)
 
 
 def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
