@@ -343,8 +343,8 @@ def main(argv=None) -> int:
     ap.add_argument("--chunk", type=int, default=None,
                     help="most configurations vmapped at once per device (default: each "
                          "strategy's, strategies.default_chunk: 1, unbatched, for "
-                         "multilevel, multilevel-mpc and multilevel-eco, 16 for conventional and "
-                         "baseline, else 64)")
+                         "multilevel, multilevel-mpc, multilevel-eco and dp-bound, 16 for "
+                         "conventional and baseline)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--plain", action="store_true", help="time simulate_batch only")
     g.add_argument("--compare-plain", action="store_true",

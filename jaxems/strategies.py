@@ -1239,9 +1239,10 @@ def _fields(m: Metrics, vp) -> dict:
 # plant's full Level 0 only at steps where some vehicle of the chunk needs it
 # (`shard.shortcut`), so smaller chunks skip it more often: batch 256, chunks of 4 / 8 / 16 /
 # 32 / 64 / 128, 103 / 126 / 132 / 119 / 119 / 107 configurations/s (conventional) and 83 /
-# 113 / 113 / 92 / 80 / 81 (baseline). The others (dp-bound) vectorise best in 64
-CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1, "conventional": 16,
-         "baseline": 16}
+# 113 / 113 / 92 / 80 / 81 (baseline). dp-bound: batch 8, chunks of 1 / 4 (vmapped), 0.527 /
+# 0.525 configurations/s, compile 10.9 / 15.5 s, peak RSS 1.3 / 2.8 GB
+CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1, "dp-bound": 1,
+         "conventional": 16, "baseline": 16}
 DEFAULT_CHUNK = 64
 
 
