@@ -819,6 +819,8 @@ class MpcParams(NamedTuple):
     grade: Any
     mask: Any
     w: Any  # (T + h,) engine speed assumed by Level 2 (constant, as iteration 0)
+    gears: Any  # ((T + h,) gear, (T + h,) ok): Level 2's gears at w (`select_gears`), sliced
+    # for each window (the selection is step by step)
     end: Any  # () index of the last valid step
     E_target: Any  # () E_b at the end of the route (charge sustaining)
     dt: Any
@@ -832,16 +834,18 @@ def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
         win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, h2)  # noqa: E731
         covers_end = j + h2 > p.end
         args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
+        gears = (win2(p.gears[0]), win2(p.gears[1]))
 
         def to_end():  # the window reaches the route's end: charge sustaining there, within
             # the battery's limits (I1, up to `pieces` pieces: the first piece's costate is
             # applied); at a guard, the side of Level 2's I2b sequence now (as `guard_lambda`)
             c2 = l2.costate_kernel(vp, *args, E_b0=obs.E_b, E_b_end=p.E_target,
-                                   n_iter=l2_iter, max_pieces=pieces)
+                                   n_iter=l2_iter, max_pieces=pieces, gears=gears)
             return guard_lambda(c2, 1e-3 * vp.E_b_max)[0]
 
         def limited():  # I3: the largest distance to the battery limits over the window
-            return l2.horizon_kernel(vp, *args, obs.E_b, n_iter=l2_iter, max_pieces=1).lam
+            return l2.horizon_kernel(vp, *args, obs.E_b, n_iter=l2_iter, max_pieces=1,
+                                     gears=gears).lam
 
         due = (obs.k - k_last) >= t2
         lam_new = jax.lax.cond(due, lambda: jax.lax.cond(covers_end, to_end, limited),
@@ -905,9 +909,10 @@ def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Ru
     padf = lambda a: jnp.concatenate([a, jnp.zeros(h, a.dtype)])  # noqa: E731
     end = jnp.maximum(jnp.sum(pred.mask) - 1, 0)
     track = pl.make_track(route, pred, opts.end_cap)
-    p = MpcParams(P_d=padf(pred.P_d), v=padf(pred.v), grade=padf(pred.grade),
-                  mask=jnp.concatenate([pred.mask, jnp.zeros(h, bool)]),
-                  w=padf(mpc_omega(vp, pred)), end=end,
+    P_d, v, w = padf(pred.P_d), padf(pred.v), padf(mpc_omega(vp, pred))
+    mask = jnp.concatenate([pred.mask, jnp.zeros(h, bool)])
+    p = MpcParams(P_d=P_d, v=v, grade=padf(pred.grade), mask=mask, w=w,
+                  gears=l2.select_gears(vp, P_d, v, w, mask), end=end,
                   E_target=mpc_end_target(vp, track, opts),
                   dt=jnp.asarray(dt, pred.v.dtype), switch=params)
     ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)

@@ -9,6 +9,7 @@ enumeration for I2b.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -48,6 +49,33 @@ def test_modes_at_gear_equals_full_table():
         full, one = _mgs(VP, P_d, v, lam), f(VP, P_d, v, g, lam)
         np.testing.assert_array_equal(np.asarray(full.H)[:, g], np.asarray(one.H))
         np.testing.assert_array_equal(np.asarray(full.P_b)[:, g], np.asarray(one.P_b))
+
+
+@settings(max_examples=20, deadline=None)
+@given(j=st.integers(0, 90), n=st.integers(1, 60), seed=st.integers(0, 2**16))
+def test_gears_of_a_window_are_the_routes_sliced(j, n, seed):
+    """The gear rule is step by step, so a receding horizon may slice the whole route's
+    (`strategies.MpcParams.gears`); and the kernels given those gears give the same result."""
+    rng = np.random.default_rng(seed)
+    T = 150
+    P_d, v = rng.uniform(-150e3, 350e3, T), rng.uniform(0.0, 25.0, T)
+    w, mask = rng.uniform(600, 1800, T) * RPM, rng.random(T) < 0.9
+    gear, ok = _gears(VP, P_d, v, w, mask)
+    sl = slice(j, j + n)
+    g_w, ok_w = _gears(VP, P_d[sl], v[sl], w[sl], mask[sl])
+    np.testing.assert_array_equal(np.asarray(gear)[sl], np.asarray(g_w))
+    np.testing.assert_array_equal(np.asarray(ok)[sl], np.asarray(ok_w))
+    args = (VP, P_d[sl], v[sl], w[sl], mask[sl], 1.0, 0.5 * VP.E_b_max)
+    given_g = (np.asarray(gear)[sl], np.asarray(ok)[sl])
+    for a, b_ in ((_horizon(*args), _horizon(*args, gears=given_g)),
+                  (_costate(*args), _costate(*args, gears=given_g))):
+        for x, y in zip(a, b_, strict=True):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+_gears = xla.jit(b.select_gears)
+_horizon = xla.jit(functools.partial(b.horizon_kernel, n_iter=20, max_pieces=2))
+_costate = xla.jit(functools.partial(b.costate_kernel, n_iter=20, max_pieces=2))
 
 
 def test_gear_rule_matches_reference():

@@ -508,12 +508,12 @@ def _violations(sol: _Pieces, bnd):
 
 def _solve_core(
     vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lam_lo, lam_hi, tol_rel, *, n_iter,
-    max_pieces,
+    max_pieces, gears=None,
 ) -> CostateResult:
     K = max_pieces
     T = P_d.shape[0]
     dtype = jnp.result_type(P_d, float)
-    gear, ok = select_gears(vp, P_d, v, w, mask)
+    gear, ok = select_gears(vp, P_d, v, w, mask) if gears is None else gears
     tol = tol_rel * vp.E_b_max
     tol_v = _tol_v(tol, dtype)  # a violation smaller than this is rounding
     bnd = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.full((K,), T, jnp.int32)])
@@ -619,17 +619,19 @@ def _defaults(vp, E_b0, E_b_end, E_max):
 def costate_kernel(
     vp: VehicleParams, P_d, v, w, mask, dt, E_b0=jnp.nan, E_b_end=jnp.nan, E_min=0.0,
     E_max=jnp.nan, lam_min=LAM_BRACKET[0], lam_max=LAM_BRACKET[1], tol_rel=1e-3, *,
-    n_iter: int = 40, max_pieces: int = 16,
+    n_iter: int = 40, max_pieces: int = 16, gears=None,
 ) -> CostateResult:
     """The unvalidated, traceable Level 2 kernel (one vehicle, one route); see `solve_costate`.
 
     P_d, v, w: (T,), mask: (T,) bool, every other argument a scalar (array leaves: new values
     never recompile). NaN E_b0 / E_b_end / E_max mean soc0 E_b_max / E_b0 / E_b_max.
+    gears: `select_gears(vp, P_d, v, w, mask)` if already at hand (a receding horizon slices
+    them from the whole route's: the selection is step by step).
     """
     E_b0, E_b_end, E_max = _defaults(vp, E_b0, E_b_end, E_max)
     return _solve_core(
         vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lam_min, lam_max, tol_rel,
-        n_iter=n_iter, max_pieces=max_pieces,
+        n_iter=n_iter, max_pieces=max_pieces, gears=gears,
     )
 
 
@@ -875,13 +877,14 @@ class HorizonResult(NamedTuple):
 def horizon_kernel(
     vp: VehicleParams, P_d, v, w, mask, dt, E_b0, E_min=0.0, E_max=jnp.nan,
     lam_min=LAM_BRACKET[0], lam_max=LAM_BRACKET[1], tol_rel=1e-3, *, n_iter: int = 40,
-    max_pieces: int = 4,
+    max_pieces: int = 4, gears=None,
 ) -> HorizonResult:
-    """Traceable I3 kernel (one vehicle, one window); see `level2_horizon`."""
+    """Traceable I3 kernel (one vehicle, one window); see `level2_horizon`. gears: as in
+    `costate_kernel`."""
     E_max = jnp.where(jnp.isnan(E_max), vp.E_b_max, E_max)
     T = P_d.shape[0]
     dtype = jnp.result_type(P_d, float)
-    gear, ok = select_gears(vp, P_d, v, w, mask)
+    gear, ok = select_gears(vp, P_d, v, w, mask) if gears is None else gears
     tol = tol_rel * vp.E_b_max
 
     def path(dE):
@@ -938,7 +941,7 @@ def horizon_kernel(
     def first_subproblem(_):
         m = mask & (jnp.arange(T) < tc)
         res = _solve_core(vp, P_d, v, w, m, dt, E_b0, lim, E_min, E_max, lam_min, lam_max,
-                          tol_rel, n_iter=n_iter, max_pieces=max_pieces)
+                          tol_rel, n_iter=n_iter, max_pieces=max_pieces, gears=(gear, ok & m))
         status = (res.status | I3A).astype(jnp.int32)
         return res.lam0, res.E_b, status, res.r_plus[0], res.lam_lo[0], res.lam_hi[0]
 
