@@ -52,12 +52,13 @@ def test_modes_at_gear_equals_full_table():
 
 
 @settings(max_examples=20, deadline=None)
-@given(j=st.integers(0, 90), n=st.integers(1, 60), seed=st.integers(0, 2**16))
-def test_gears_of_a_window_are_the_routes_sliced(j, n, seed):
+@given(j=st.integers(0, 110), seed=st.integers(0, 2**16))
+def test_gears_of_a_window_are_the_routes_sliced(j, seed):
     """The gear rule is step by step, so a receding horizon may slice the whole route's
-    (`strategies.MpcParams.gears`); and the kernels given those gears give the same result."""
+    (`strategies.MpcParams.gears`); and the kernels given those gears give the same result.
+    (One window length: each new shape would compile the kernels again.)"""
     rng = np.random.default_rng(seed)
-    T = 150
+    T, n = 150, 40
     P_d, v = rng.uniform(-150e3, 350e3, T), rng.uniform(0.0, 25.0, T)
     w, mask = rng.uniform(600, 1800, T) * RPM, rng.random(T) < 0.9
     gear, ok = _gears(VP, P_d, v, w, mask)
