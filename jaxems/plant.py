@@ -400,6 +400,13 @@ def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, 
     return req_ok | at_rest, jnp.asarray(s_req, jnp.int32)
 
 
+def protection(dt):
+    """Level 0 as the plant's step calls it: `protected_state` where `requested_serves` does
+    not already know the answer (`shard.shortcut`; dt: the step, s)."""
+    return shortcut(functools.partial(requested_serves, dt=dt),
+                    functools.partial(protected_state, dt=dt))
+
+
 # ------------------------------------------------------------------------------ the step
 def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k):
     st, cparams, cstate = carry
@@ -458,9 +465,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
     v_after = jnp.maximum(v_op - dv_sw, 0.1)
-    protect = shortcut(functools.partial(requested_serves, dt=dt),
-                       functools.partial(protected_state, dt=dt))
-    s_new = protect(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
+    s_new = protection(dt)(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
     req_mode = (s_new // n_g).astype(st.mode.dtype)
     req_gear = (s_new % n_g).astype(st.gear.dtype)
 

@@ -834,7 +834,7 @@ def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
         win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, h2)  # noqa: E731
         covers_end = j + h2 > p.end
         args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
-        gears = (win2(p.gears[0]), win2(p.gears[1]))
+        gears = jax.tree.map(win2, p.gears)
 
         def to_end():  # the window reaches the route's end: charge sustaining there, within
             # the battery's limits (I1, up to `pieces` pieces: the first piece's costate is

@@ -378,8 +378,7 @@ def test_all_ranges_equal_each_states_own(v):
 
 
 _protect_full = xla.jit(functools.partial(P.protected_state, dt=1.0))
-_protect = P.shortcut(functools.partial(P.requested_serves, dt=1.0),
-                      functools.partial(P.protected_state, dt=1.0))
+_protect = P.protection(1.0)  # as the plant's step calls it
 _protect_one = xla.jit(_protect)
 _protect_vmap = xla.jit(jax.vmap(_protect, in_axes=(None, 0, None, None, None, None, 0, None,
                                                      None)))
