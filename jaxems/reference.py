@@ -29,6 +29,8 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   (the best mode at the step's gear for a costate), `ref_end` (E_b(t_f) for a constant
   costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
   `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
+- dp-bound: `ref_bound_dp` (its DP over an E_b grid with interpolation, as loops) and
+  `brute_bound` (every sequence of states and candidates, for tiny problems).
 - Plans on the plant: `ref_battery_path` (a plan's battery energy piece by piece, each piece
   from Level 2's start value, held within the battery's limits step by step) and
   `ref_plan_energy` (each step's battery energy change: synchronisation, open driveline).
@@ -1117,3 +1119,115 @@ def ref_braking_loss(vp: VehicleParams, H, P_d, dt):
 
 
 __all__ += ["ref_battery_path", "ref_braking_loss", "ref_plan_energy"]
+
+
+# ------------------------------------------------------------------------------ dp-bound
+class RefBound(NamedTuple):
+    """`ref_bound_dp`'s result: (T,) state path, candidate index and step cost (J, with the
+    switching cost), E_b(tf) (J), the value's slope at E_b(t0) in the first state (J/J) and
+    the value (J) at E_b(t0) before step 0 (of the start state; the least over states when
+    the start is free)."""
+
+    state: Any
+    cand: Any
+    cost: Any
+    E_end: float
+    lam0: float
+    value: float
+
+
+def _bound_interp(V1, x, dE, n_E):
+    """V1 (n_E,) at E = x (J) by linear interpolation; None outside [0, (n_E - 1) dE]."""
+    u = x / dE
+    if u < -1e-9 or u > n_E - 1 + 1e-9:
+        return None
+    i0 = min(max(int(math.floor(u)), 0), n_E - 2)
+    f = u - i0
+    return (1 - f) * V1[i0] + f * V1[i0 + 1]
+
+
+def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, n_E,
+                 big=1e15) -> RefBound:
+    """dp-bound's DP (`strategies.bound_dp`) as loops: backward over an E_b grid of n_E points
+    with linear interpolation of the value function, then a forward rollout from the exact E0.
+
+    fuel, dEb: (T, J, S) each candidate's fuel (J) and E_b change (J) per state; C: (T, S, S)
+    switching costs C[k, s_prev, s]; mask: (T,) steps that count (others keep state and E_b);
+    s_init: the state before step 0 (-1: free, no switching cost). Terminal cost lam_end
+    (E - goal) + penalty |E - goal|. A candidate that leaves the grid costs `big`, and no value
+    exceeds it (as the kernel's)."""
+    fuel, dEb, C = (np.asarray(a, float) for a in (fuel, dEb, C))
+    T, J, S = fuel.shape
+    dE = E_max / (n_E - 1)
+    grid = np.arange(n_E) * dE
+
+    def q(V1, k, E, s):  # min over candidates of fuel + V1(E + dE) in state s, and its index
+        tots = []
+        for j in range(J):
+            v = _bound_interp(V1[:, s], E + dEb[k, j, s], dE, n_E)
+            tots.append(big if v is None else fuel[k, j, s] + v)
+        return min(tots), int(np.argmin(tots))
+
+    # V[k]: (n_E, S) value before step k at E_b grid point i, given the state before the step
+    V = [None] * (T + 1)
+    term = lam_end * (grid - goal) + penalty * np.abs(grid - goal)
+    V[T] = np.repeat(term[:, None], S, axis=1)
+    for k in range(T - 1, -1, -1):
+        if not mask[k]:
+            V[k] = V[k + 1]
+            continue
+        V[k] = np.empty((n_E, S))
+        for i in range(n_E):
+            Q = [q(V[k + 1], k, grid[i], s)[0] for s in range(S)]
+            for sp in range(S):
+                V[k][i, sp] = min(min(C[k, sp, s] + Q[s] for s in range(S)), big)
+    state, cand, cost = (np.zeros(T, int), np.zeros(T, int), np.zeros(T))
+    E, s = float(E0), int(s_init)
+    for k in range(T):
+        if not mask[k]:
+            state[k] = max(s, 0)
+            s = state[k]
+            continue
+        tots = []
+        for s1 in range(S):
+            qv, j = q(V[k + 1], k, E, s1)
+            tots.append((qv + (C[k, s, s1] if s >= 0 else 0.0), j))
+        s1 = int(np.argmin([t for t, _ in tots]))
+        j = tots[s1][1]
+        state[k], cand[k] = s1, j
+        cost[k] = fuel[k, j, s1] + (C[k, s, s1] if s >= 0 else 0.0)
+        E, s = E + dEb[k, j, s1], s1
+    u = E0 / dE
+    i0 = min(max(int(math.floor(u)), 0), n_E - 2)
+    lam0 = (V[0][i0 + 1, state[0]] - V[0][i0, state[0]]) / dE
+    # the value at E0 of the first decision: that of the start state, or the best when free
+    first = [q(V[1], 0, E0, s1)[0] + (C[0, s_init, s1] if s_init >= 0 else 0.0)
+             for s1 in range(S)] if mask[0] else None
+    value = float(min(first)) if first is not None else float("nan")
+    return RefBound(state=state, cand=cand, cost=cost, E_end=E, lam0=float(lam0), value=value)
+
+
+def brute_bound(fuel, dEb, C, s_init, E0, E_max, goal, lam_end, penalty):
+    """The least total cost (J) of dp-bound's problem by enumerating every sequence of states
+    and candidates (T steps, every step counts): the fuel and switching costs plus the terminal
+    cost, E_b within [0, E_max] after every step. For tiny T only ((J S)^T sequences); where
+    every E_b change is a multiple of the grid spacing the DP's interpolation is exact and
+    its optimum must equal this."""
+    fuel, dEb, C = (np.asarray(a, float) for a in (fuel, dEb, C))
+    T, J, S = fuel.shape
+    # vectorised over all sequences of the steps so far: (n,) cost, E, state
+    cost, E, s = np.zeros(1), np.full(1, float(E0)), np.full(1, int(s_init))
+    ok = np.ones(1, bool)
+    for k in range(T):
+        j, s1 = np.meshgrid(np.arange(J), np.arange(S), indexing="ij")
+        j, s1 = j.ravel(), s1.ravel()
+        sw = np.where(s[:, None] >= 0, C[k][np.maximum(s, 0)][:, s1], 0.0)
+        cost = (cost[:, None] + fuel[k, j, s1][None] + sw).ravel()
+        E = (E[:, None] + dEb[k, j, s1][None]).ravel()
+        ok = np.repeat(ok, J * S) & (E >= -1e-9 * E_max) & (E <= E_max * (1 + 1e-9))
+        s = np.tile(s1, s.shape[0])
+    total = cost + lam_end * (E - goal) + penalty * np.abs(E - goal)
+    return float(np.min(np.where(ok, total, np.inf)))
+
+
+__all__ += ["RefBound", "brute_bound", "ref_bound_dp"]

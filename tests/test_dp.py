@@ -1,14 +1,21 @@
-"""Generic min-plus Viterbi kernel against exhaustive enumeration of all state sequences."""
+"""Generic min-plus Viterbi kernel against exhaustive enumeration of all state sequences; dp-bound's
+DP over an E_b grid against its loops and, where its grid is exact, brute force."""
 
 import itertools
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import dp, xla
+from jaxems import reference as R
+from jaxems import strategies as S_
+from jaxems.levels import powersplit as ps
+from jaxems.params import load_vehicle
 
 S, T = 4, 5
 
@@ -143,3 +150,85 @@ def test_float32_pointers_and_inf():
     C = np.zeros((2, 2), np.float32)
     r = xla.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))(stage, C, np.zeros(2))
     assert not bool(r.feasible)
+
+
+# ------------------------------------------------------------------------------ dp-bound's DP
+class _Pred(NamedTuple):  # what `strategies.bound_dp` reads of a Level 3 prediction
+    v: Any
+    mask: Any
+    v_ref: Any
+
+
+_bound_dp = xla.jit(S_.bound_dp, static_argnums=4)
+_BS, _BJ = 8, 3  # states (4 modes x 2 "gears"), candidates per state
+_VP = load_vehicle("reference_truck")
+
+
+def _bound_instance(rng, T, n_E, aligned, standing, mask):
+    """Random tables for `bound_dp`: fuel (T, J, S) with some infeasible (BIG) entries, E_b
+    changes (multiples of the grid spacing where aligned), switching costs (T, S, S)."""
+    E_max = float(_VP.E_b_max)
+    dE = E_max / (n_E - 1)
+    if aligned:
+        dEb = rng.integers(-2, 3, (T, _BJ, _BS)) * dE
+    else:
+        dEb = rng.uniform(-1.7, 1.7, (T, _BJ, _BS)) * dE
+    fuel = rng.uniform(0.0, 2e5, (T, _BJ, _BS)) - 1.2 * dEb  # discharging saves fuel
+    fuel[rng.random(fuel.shape) < 0.1] = S_.BIG
+    C = rng.uniform(0.0, 3e4, (T, _BS, _BS))
+    C[:, np.arange(_BS), np.arange(_BS)] = 0.0
+    tab = S_.BoundTables(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
+                         P_b=jnp.asarray(rng.uniform(-1e5, 1e5, fuel.shape)), C=jnp.asarray(C),
+                         lams=jnp.asarray(-np.arange(1.0, _BJ + 1)),
+                         lam_end=jnp.asarray(rng.uniform(-3.0, -1.0)))
+    pred = _Pred(v=jnp.ones(T), mask=jnp.asarray(mask),
+                 v_ref=jnp.full(T + 1, 0.0 if standing else 5.0))
+    s_init = ps.MO * (_BS // ps.N_MODES) if standing else -1
+    return tab, pred, s_init
+
+
+def _ref_bound(tab, pred, s_init, goal, n_E, penalty):
+    return R.ref_bound_dp(tab.fuel, tab.dEb, tab.C, np.asarray(pred.mask), s_init,
+                          float(_VP.soc0 * _VP.E_b_max), float(_VP.E_b_max), goal,
+                          float(tab.lam_end), penalty, n_E)
+
+
+@settings(max_examples=25)
+@given(seed=st.integers(0, 2**31 - 1), standing=st.booleans(), pad=st.integers(0, 2),
+       goal_frac=st.floats(0.3, 0.7), penalty=st.sampled_from([0.0, 1.0, 10.0]))
+def test_bound_dp_equals_its_loops(seed, standing, pad, goal_frac, penalty):
+    """dp-bound's DP (value function on an E_b grid, interpolated; forward rollout from E0)
+    equals the same recursion written as loops, with steps that do not count at the end."""
+    T, n_E = 6, 9
+    mask = np.arange(T) < T - pad
+    tab, pred, s_init = _bound_instance(np.random.default_rng(seed), T, n_E, False, standing,
+                                        mask)
+    goal = goal_frac * float(_VP.E_b_max)
+    bp = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
+    ref = _ref_bound(tab, pred, s_init, goal, n_E, penalty)
+    np.testing.assert_array_equal(np.asarray(bp.state), ref.state)
+    # the costate of each counted step's candidate (steps that do not count have none)
+    np.testing.assert_array_equal(np.asarray(bp.lam)[mask], np.asarray(tab.lams)[ref.cand][mask])
+    np.testing.assert_allclose(np.asarray(bp.cost), ref.cost, rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(float(bp.E_end), ref.E_end, rtol=1e-12)
+    np.testing.assert_allclose(float(bp.lam0), ref.lam0, rtol=1e-9, atol=1e-12)
+
+
+@settings(max_examples=15)
+@given(seed=st.integers(0, 2**31 - 1), standing=st.booleans())
+def test_bound_dp_is_the_optimum_where_its_grid_is_exact(seed, standing):
+    """Where every E_b change is a multiple of the grid spacing, the interpolation is exact:
+    the DP's path (its costs and terminal cost) is the least of every sequence of states and
+    candidates within the battery's limits (brute force), as is the loops' value."""
+    T, n_E = 4, 5
+    tab, pred, s_init = _bound_instance(np.random.default_rng(seed), T, n_E, True, standing,
+                                        np.ones(T, bool))
+    goal, penalty = 0.5 * float(_VP.E_b_max), 1.0
+    bp = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
+    d = float(bp.E_end) - goal
+    total = float(np.sum(bp.cost)) + float(tab.lam_end) * d + penalty * abs(d)
+    best = R.brute_bound(tab.fuel, tab.dEb, tab.C, s_init, float(_VP.soc0 * _VP.E_b_max),
+                         float(_VP.E_b_max), goal, float(tab.lam_end), penalty)
+    assert total == pytest.approx(best, rel=1e-12)
+    assert _ref_bound(tab, pred, s_init, goal, n_E, penalty).value == pytest.approx(best,
+                                                                                  rel=1e-12)
