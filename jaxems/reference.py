@@ -29,6 +29,10 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   (the best mode at the step's gear for a costate), `ref_end` (E_b(t_f) for a constant
   costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
   `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
+- The plant: `ref_plant` (the closed loop's step as a loop over steps under a scripted
+  controller: reference speed by position, stops, mean gradient, Level 0's state, open
+  driveline, synchronisation, the split, battery limits and the final braking's cap, motion,
+  totals).
 - dp-bound: `ref_bound_dp` (its DP over an E_b grid with interpolation, as loops) and
   `brute_bound` (every sequence of states and candidates, for tiny problems).
 - Plans on the plant: `ref_battery_path` (a plan's battery energy piece by piece, each piece
@@ -291,17 +295,18 @@ def _pb_of_pm(f, pm0, P_m):
     return np.where(d > 0, d / f.eta_m, d * f.eta_m)
 
 
-def _ranges(f, mode: int, P_d, w, launch) -> _Ranges:
-    """Ranges of `mode` (index) at demand P_d (W) and gearbox speed w (rad/s), written from
-    eqs. 1-7, 10-12: a connected engine needs w in [we_min, we_max] (in gear 1 below idle it
-    runs at we_min with a slipping clutch that cannot brake: crank power = k * output, k =
-    we_min / w), a connected motor w <= wm_max; the motor (or nothing) covers P_d minus at most
-    the engine's full load, service brakes take any surplus."""
+def _caps(f, mode: int, w, launch):
+    """What `mode` (index) can do at gearbox speed w (rad/s), whatever the demand: (runs,
+    motor connected, engine connected, slip factor k, engine output range pe_lo, pe_hi at the
+    clutch, engine friction pe0, motor limit m_lim, motor friction pm0). A connected engine
+    needs w in [we_min, we_max] (in gear 1 below idle it runs at we_min with a slipping clutch
+    that cannot brake: crank power = k * output, k = we_min / w), a connected motor w <=
+    wm_max."""
     ce, needs_motor = ENGINE_CONNECTED[mode], MOTOR_CONNECTED[mode]
     cm = needs_motor and f.has_motor >= 0.5
-    P_d, w, launch = np.broadcast_arrays(np.asarray(P_d, float), np.asarray(w, float), launch)
-    zero = np.zeros(P_d.shape)
-    ok = np.ones(P_d.shape, bool) if (cm or not needs_motor) else np.zeros(P_d.shape, bool)
+    w, launch = np.broadcast_arrays(np.asarray(w, float), launch)
+    zero = np.zeros(w.shape)
+    ok = np.ones(w.shape, bool) if (cm or not needs_motor) else np.zeros(w.shape, bool)
     if ce:
         slip = launch & (w < f.we_min)
         we = np.where(slip, f.we_min, w)
@@ -312,13 +317,23 @@ def _ranges(f, mode: int, P_d, w, launch) -> _Ranges:
         pe_lo = np.where(slip, 0.0, t_lo / k)
         pe0 = _engine_friction(f, we)
     else:
-        k, pe_lo, pe_hi, pe0 = np.ones(P_d.shape), zero, zero, zero
+        k, pe_lo, pe_hi, pe0 = np.ones(w.shape), zero, zero, zero
     if cm:
         ok &= w <= f.wm_max
         m_lim = np.minimum(f.tm_max * w, f.pm_max)
         pm0 = _motor_friction(f, w)
     else:
         m_lim, pm0 = zero, zero
+    return ok, cm, ce, k, pe_lo, pe_hi, pe0, m_lim, pm0
+
+
+def _ranges(f, mode: int, P_d, w, launch) -> _Ranges:
+    """Ranges of `mode` (index) at demand P_d (W) and gearbox speed w (rad/s), written from
+    eqs. 1-7, 10-12: what the mode can do (`_caps`); the motor (or nothing) covers P_d minus at
+    most the engine's full load, service brakes take any surplus."""
+    P_d, w, launch = np.broadcast_arrays(np.asarray(P_d, float), np.asarray(w, float), launch)
+    ok, cm, ce, k, pe_lo, pe_hi, pe0, m_lim, pm0 = _caps(f, mode, w, launch)
+    zero = np.zeros(P_d.shape)
     pm_lo = np.maximum(-m_lim, P_d - pe_hi)
     ok &= pm_lo <= m_lim
     if cm:
@@ -1231,3 +1246,265 @@ def brute_bound(fuel, dEb, C, s_init, E0, E_max, goal, lam_end, penalty):
 
 
 __all__ += ["RefBound", "brute_bound", "ref_bound_dp"]
+
+
+# ------------------------------------------------------------------------------ the plant
+class RefPlantStep(NamedTuple):
+    """One step of `ref_plant`: the state at its start, what it ran and what it spent."""
+
+    s: float
+    v: float
+    E_b: float
+    mode: int
+    gear: int
+    P_d: float  # at the wheels: powertrain plus service brakes
+    P_e: float
+    P_m: float
+    P_b: float
+    P_f: float  # with idling
+    P_brake: float
+    v_ref: float
+
+
+def _state_caps(f, mode, gear, v):
+    """`_caps` of one (mode, gear) at vehicle speed v, as floats (flags as bools)."""
+    w = float(f.gear_ratio[gear] * f.r_d * v)
+    ok, cm, ce, k, e_lo, e_hi, pe0, m_lim, pm0 = _caps(f, int(mode), w, gear == 0)
+    return SimpleNamespace(ok=bool(ok), cm=bool(cm), ce=bool(ce), k=float(k), e_lo=float(e_lo),
+                           e_hi=float(e_hi), pe0=float(pe0), m_lim=float(m_lim),
+                           pm0=float(pm0))
+
+
+def _pm_of_pb(f, c, P_b):
+    if not c.cm:
+        return 0.0
+    return c.pm0 + (f.eta_m * P_b if P_b > 0 else P_b / f.eta_m)
+
+
+def _pb_of_pm_state(f, c, P_m):
+    return float(_pb_of_pm(f, c.pm0, P_m)) if c.cm else 0.0
+
+
+def _pb_of_pbi(f, P_bi):
+    """Terminal power with internal power P_bi (the physical root of eq. 7)."""
+    return (math.sqrt(max(1.0 + 4.0 * f.beta * P_bi, 0.0)) - 1.0) / (2.0 * f.beta)
+
+
+def _capable(f, c, E_b, P_need, dt):
+    """The state runs and delivers P_need for dt (its motor limited by the battery's energy)."""
+    m_hi = min(c.m_lim, c.pm0 + f.eta_m * _pb_of_pbi(f, max(E_b, 0.0) / dt))
+    return c.ok and c.e_hi + m_hi >= P_need - 1e-6 * abs(P_need)
+
+
+def _sync(f, mode0, gear0, mode1, gear1, v):
+    """Synchronisation energy (J): the rise of each connected inertia's rotational energy (an
+    engine slipping in gear 1 turns at idle at least; a truck without a motor spins none)."""
+    w = f.gear_ratio * f.r_d * v
+    out = 0.0
+    parts = [(f.I_e, ENGINE_CONNECTED, f.we_min)]
+    if f.has_motor > 0.5:
+        parts.append((f.I_m, MOTOR_CONNECTED, 0.0))
+    for inertia, flags, floor in parts:
+        w0 = max(w[gear0], floor if gear0 == 0 else 0.0)
+        w1 = max(w[gear1], floor if gear1 == 0 else 0.0)
+        out += 0.5 * inertia * max(flags[mode1] * w1 * w1 - flags[mode0] * w0 * w0, 0.0)
+    return out
+
+
+def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
+    """Level 0 (`plant.protected_state`), evaluating every state: the requested state where it
+    serves (at v_op, and at v_after when switched into) or at rest; else the current one where
+    it serves; else the requested mode's gear of least H that serves after the switch; else
+    the state of least H that serves after, else now; else the most capable."""
+    G = f.gear_ratio.shape[0]
+    S = N_MODES * G
+
+    def caps(s, v):
+        return _state_caps(f, s // G, s % G, v)
+
+    def serves(s, v):
+        return _capable(f, caps(s, v), E_b, P_need, dt)
+
+    if at_rest or (serves(s_req, v_op) and (s_req == s_cur or serves(s_req, v_after))):
+        return s_req
+    ok_now = [serves(s, v_op) for s in range(S)]
+    ok_after = [ok_now[s] and serves(s, v_after) for s in range(S)]
+    H = split_table(vp, [P_need], [v_op], lam).H[0].reshape(-1)  # inf where infeasible
+    if ok_now[s_cur]:
+        return s_cur
+    in_mode = [H[s] if ok_after[s] and s // G == s_req // G else np.inf for s in range(S)]
+    if np.isfinite(min(in_mode)):
+        return int(np.argmin(in_mode))
+    if any(ok_after):
+        return int(np.argmin([H[s] if ok_after[s] else np.inf for s in range(S)]))
+    if any(ok_now):
+        return int(np.argmin([H[s] if ok_now[s] else np.inf for s in range(S)]))
+    cap = [c.e_hi + c.m_lim if c.ok else -np.inf for c in (caps(s, v_op) for s in range(S))]
+    return int(np.argmax(cap))
+
+
+def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0: int,
+              gear0: int):
+    """The plant (`plant.run_plant`) as a loop over its steps, under a scripted controller.
+
+    track: the plant's `Track` (its arrays are read with NumPy); commands: (mode, gear, lam,
+    P_b, catch_up), each (n_steps,), the controller's command at each step (P_b nan: the
+    optimal split at lam, found by the refined brute force of `split_table`). The truck starts
+    at the reference's first position and speed, E_b = soc0 E_b_max, in (mode0, gear0).
+    Returns (steps: list of `RefPlantStep`, totals: dict of the run's energies (J), switch
+    counts and trip time (s), final: dict of the state after the last step)."""
+    f = _veh(vp)
+    tk = SimpleNamespace(**{k: np.asarray(getattr(track, k), float) for k in (
+        "ref_s", "ref_v", "grid_s", "grade", "rise", "stop_s", "stop_t", "length", "final_s")})
+    length, final_s = float(tk.length), float(tk.final_s)
+    c_mode, c_gear, c_lam, c_pb, c_up = (np.asarray(a) for a in commands)
+    G = f.gear_ratio.shape[0]
+    T = tk.ref_s.shape[0] - 1
+    t_open = max(f.dt_M, f.dt_G)
+    idle_power = -_engine_friction(f, f.we_min) / f.eta_e
+
+    def v_ref_at(j, frac):
+        a, b = tk.ref_v[min(max(j, 0), T)], tk.ref_v[min(max(j + 1, 0), T)]
+        return a + frac * (b - a)
+
+    def rise_at(x):
+        return float(np.interp(x, tk.grid_s, tk.rise))
+
+    s, v, E_b = float(tk.ref_s[0]), float(tk.ref_v[0]), f.soc0 * f.E_b_max
+    mode, gear, open_left, dwell, served, done = int(mode0), int(gear0), 0.0, 0.0, -1.0, False
+    tot = dict(fuel=0.0, road=0.0, loss_engine=0.0, loss_slip=0.0, loss_motor=0.0,
+               loss_battery=0.0, loss_brake=0.0, loss_sync=0.0, mode_switches=0,
+               gear_switches=0, max_shortfall=0.0, trip_time=0.0)
+    steps = []
+    for k in range(n_steps):
+        # where the reference is: the step whose span holds s (step ends at or before s)
+        j = min(max(int(np.searchsorted(tk.ref_s[1:], s, side="right")), 0), T - 1)
+        span = tk.ref_s[j + 1] - tk.ref_s[j]
+        frac = min(max((s - tk.ref_s[j]) / span, 0.0), 1.0) if span > 0 else 0.0
+        v_here, v_next = v_ref_at(j, frac), v_ref_at(j + 1, frac)
+        # the next stop not yet served
+        i_node = min(max(int(np.searchsorted(tk.grid_s, s + 1e-6, side="right")) - 1, 0),
+                     tk.grid_s.shape[0] - 1)
+        i_next = i_node if tk.stop_s[i_node] > served + 1e-6 else i_node + 1
+        s_stop, t_stop = float(tk.stop_s[i_next]), float(tk.stop_t[i_next])
+        d_stop = max(s_stop - s, 0.0)
+        standing = dwell > 0.5 * dt
+        d_left = min(d_stop, max(length - s, 0.0))
+        v_tgt = 0.0 if standing else max(v_next, min(V_CRAWL, d_left / dt))
+        v1_tgt = min(v_tgt, v + f.a_max * dt, max(2.0 * d_stop / dt - v, 0.0))
+        ds_tgt = min(0.5 * (v + v1_tgt) * dt, d_stop)
+        # the mean gradient over the distance the step is to cover
+        s_end = min(s + ds_tgt, length)
+        if s_end - s > 1e-3:
+            grade = (rise_at(s_end) - rise_at(s)) / (s_end - s)
+        else:
+            i = int(np.searchsorted(tk.grid_s, s, side="right")) - 1
+            grade = float(tk.grade[min(max(i, 0), tk.grade.shape[0] - 1)])
+        F0 = float(road_load(f, v, grade))
+        P_req = (0.5 * f.mass * (v1_tgt**2 - v**2) + F0 * ds_tgt) / dt
+        v_op = v if v > 0 else ds_tgt / dt
+        lam = float(c_lam[k])
+
+        # Level 0: what must be served, and the state the driveline takes
+        at_rest = standing or (v <= 0 and v1_tgt <= 0)
+        engage = standing and not (dwell - max(t_open, dt) > 0.5 * dt)
+        s_cur = mode * G + gear
+        s_req = MO * G + gear if (at_rest and not engage) else int(c_mode[k]) * G + int(c_gear[k])
+        a_ref = (v_next - v_here) / dt
+        P_follow = max(F0 + max(f.mass * a_ref, 0.0), 0.0) * v
+        P_need = min(P_req, P_follow) if v > 0 else P_req
+        v_after = max(v_op - max(F0, 0.0) * t_open / f.mass, 0.1)
+        s_new = _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt)
+        mode1, gear1 = divmod(s_new, G)
+        gear1 = gear if mode1 == MO else gear1  # the open mode keeps the gear
+        mode_sw = mode1 != mode and not done
+        gear_sw = gear1 != gear and not done and mode1 != MO
+        opens = max(open_left, max(f.dt_M if mode_sw else 0.0, f.dt_G if gear_sw else 0.0))
+        f_open = min(max(opens / dt, 0.0), 1.0)
+        dU = _sync(f, mode, gear, mode1, gear1, v) if (mode_sw or gear_sw) else 0.0
+        from_batt = f.has_motor > 0.5 and E_b >= dU / f.eta_m
+        E_sync_b, E_sync_f = (dU / f.eta_m, 0.0) if from_batt else (0.0, dU / f.eta_e)
+
+        # the split in the state the driveline is in
+        c = _state_caps(f, mode1, gear1, v_op)
+        traction = (1.0 - f_open) * c.ok
+        P_dem = min(P_req, traction * (c.e_hi + c.m_lim))
+        planned = bool(np.isfinite(c_pb[k]))
+        if planned and not bool(c_up[k]):  # recover a switch's lost speed on the engine only
+            pm_cmd = _pm_of_pb(f, c, float(c_pb[k]))
+            cap_plan = traction * ((c.e_hi if c.ce else 0.0) + min(max(pm_cmd, 0.0), c.m_lim))
+            P_dem = min(P_dem, max(P_need, cap_plan))
+        if planned:
+            P_b = float(c_pb[k])
+        elif c.cm and c.ok:
+            rs = split_table(vp, [P_dem], [v_op], lam)
+            P_b = float(rs.P_b[0, mode1, gear1])
+        else:
+            P_b = 0.0
+        P_b = P_b if traction > 0 else 0.0
+        pb_lo = _pb_of_pm_state(f, c, max(-c.m_lim, P_dem - c.e_hi))
+        pb_hi = _pb_of_pm_state(f, c, c.m_lim)
+        E_avail = E_b - E_sync_b
+        pb_hi = min(pb_hi, _pb_of_pbi(f, E_avail / dt))
+        E_ceil = max(f.soc0 * f.E_b_max, E_avail) if s >= final_s else f.E_b_max
+        pb_lo = max(pb_lo, _pb_of_pbi(f, (E_avail - E_ceil) / dt))
+        P_b = min(max(P_b, min(pb_lo, pb_hi)), pb_hi)
+        if traction > 0:
+            P_m = _pm_of_pb(f, c, P_b)
+        else:
+            P_m, P_b = 0.0, 0.0
+        on = c.ce and traction > 0
+        P_out = min(max(P_dem - P_m, c.e_lo), c.e_hi) if on else 0.0
+        P_p = P_out + P_m
+        P_e = c.k * P_out
+        P_f = max(P_e - c.pe0, 0.0) / f.eta_e if on else 0.0
+        idle = f.has_motor < 0.5 and (mode1 == MO or traction <= 0) and not done
+        P_idle = idle_power if idle else 0.0
+
+        # the motion: the target where the powertrain and brakes meet P_req, else short of it
+        P_wheel = P_p + min(P_req - P_p, 0.0)
+        if P_wheel < P_req - 1e-9 * (1.0 + abs(P_req)):
+            a, b = 0.5 * f.mass, 0.5 * F0 * dt
+            cq = -(0.5 * f.mass * v * v - b * v + P_wheel * dt)
+            disc = b * b - 4.0 * a * cq
+            v1 = max((-b + math.sqrt(disc)) / (2.0 * a), 0.0) if disc > 0 else 0.0
+            ds = 0.5 * (v + v1) * dt
+            P_wheel = (0.5 * f.mass * (v1**2 - v**2) + F0 * ds) / dt
+        else:
+            v1, ds = v1_tgt, ds_tgt
+        P_brake = P_wheel - P_p
+        arrived = (np.isfinite(s_stop) and d_stop - ds <= 1e-3 and v1 <= 1e-9
+                   and not standing)
+        t_in = min(max(2.0 * ds / (v + v1) if v + v1 > 0 else 0.0, 0.0), dt)
+        dwell1 = max(t_stop - (dt - t_in), 0.0) if arrived else max(dwell - dt, 0.0)
+        served1 = s_stop if arrived else served
+        s1 = s_stop if arrived else s + ds
+        finished = s1 >= length - 1e-3 and not dwell1 > 0.5 * dt
+        E_b1 = min(max(E_b - (P_b + f.beta * P_b * P_b) * dt - E_sync_b, 0.0), f.E_b_max)
+
+        live = not done
+        steps.append(RefPlantStep(s=s, v=v, E_b=E_b, mode=mode1, gear=gear1,
+                                  P_d=P_wheel * live, P_e=P_e * live, P_m=P_m * live,
+                                  P_b=P_b * live, P_f=(P_f + P_idle) * live,
+                                  P_brake=P_brake * live, v_ref=v_here))
+        if live:
+            for key, x in (("fuel", (P_f + P_idle) * dt + E_sync_f), ("road", F0 * ds),
+                           ("loss_engine", (P_f - P_e + P_idle) * dt),
+                           ("loss_slip", (P_e - P_out) * dt), ("loss_motor", (P_b - P_m) * dt),
+                           ("loss_battery", f.beta * P_b * P_b * dt),
+                           ("loss_brake", -P_brake * dt), ("loss_sync", E_sync_b + E_sync_f)):
+                tot[key] += x
+            tot["mode_switches"] += int(mode_sw)
+            tot["gear_switches"] += int(gear_sw)
+            if not standing:
+                tot["max_shortfall"] = max(tot["max_shortfall"], v_here - v)
+            if finished:
+                tot["trip_time"] = (k + 1) * dt
+            s, v, E_b, mode, gear = s1, v1, E_b1, mode1, gear1
+            open_left, dwell, served = max(opens - dt, 0.0), dwell1, served1
+            done = finished
+    final = dict(s=s, v=v, E_b=E_b, mode=mode, gear=gear, done=done)
+    return steps, tot, final
+
+
+__all__ += ["RefPlantStep", "ref_plant"]

@@ -1,4 +1,5 @@
-"""Plant: energy balance, stops, battery limits, open driveline, vmap == loop."""
+"""Plant: energy balance, stops, battery limits, open driveline, vmap == loop, the scan equal to
+its loop (`reference.ref_plant`)."""
 
 import functools
 
@@ -446,3 +447,64 @@ def test_block_search_is_searchsorted(n, data):
     x2 = jnp.asarray(xs)[:, None] + jnp.asarray([0.0, 0.5])  # (n, 2): any shape of x
     np.testing.assert_array_equal(_pt_interp(x2, jnp.asarray(a), jnp.asarray(y)),
                                   jnp.interp(x2, jnp.asarray(a), jnp.asarray(y)))
+
+
+def scripted(cmds, cstate, vp, obs):
+    """A controller that sends the command its script holds for this step."""
+    mode, gear, lam, P_b, up = (a[obs.k] for a in cmds)
+    return cstate, P.Command(mode=mode, gear=gear, lam=lam, P_b=P_b, catch_up=up)
+
+
+@xla.jit
+def run_script(vp, cmds):
+    track = P.make_track(ROUTE, PRED)
+    return track, P.run_plant(vp, track, scripted, cmds, jnp.zeros(()), ps.MO, 0, N_PLANT)
+
+
+@settings(max_examples=8, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 40e3),
+       battery=st.floats(0.2e6, 4e6), hybrid=st.booleans())
+def test_plant_equals_its_loop(seed, mass, battery, hybrid):
+    """The plant's scan equals the plant written as a loop over its steps
+    (`reference.ref_plant`) under a scripted controller: the greedy run's states, a random
+    state requested at one step in eight (Level 0 must refuse many), the optimal split at a
+    costate or a plan's battery power with or without catching up on the battery; the route
+    has two stops, a climb and a descent; a small battery reaches its limits."""
+    rng = np.random.default_rng(seed)
+    vp = VP.replace(mass=mass, E_b_max=battery)
+    vp = vp if hybrid else vp.conventional()
+    base = run(vp, -2.2).trace
+    n_g = VP.gear_ratio.shape[0]
+    mode, gear = np.asarray(base.mode), np.asarray(base.gear)
+    wild = rng.random(N_PLANT) < 0.125
+    mode = np.where(wild, rng.integers(0, ps.N_MODES, N_PLANT), mode).astype(np.int32)
+    gear = np.where(wild, rng.integers(0, n_g, N_PLANT), gear).astype(np.int32)
+    lam = rng.uniform(-3.5, -1.5, N_PLANT)
+    P_b = np.where(rng.random(N_PLANT) < 0.3, rng.uniform(-60e3, 60e3, N_PLANT), np.nan)
+    up = rng.random(N_PLANT) < 0.5
+    cmds = (mode, gear, lam, P_b, up)
+    track, res = run_script(vp, tuple(jnp.asarray(a) for a in cmds))
+    steps, tot, final = R.ref_plant(vp, track, cmds, N_PLANT, 1.0, ps.MO, 0)
+    tr = res.trace
+    n = int(np.sum(np.asarray(tr.t) < float(res.final.tot.trip_time))) if res.final.done \
+        else N_PLANT
+    assert n > 100 and bool(res.final.done) == final["done"]
+    for name in ("mode", "gear"):
+        np.testing.assert_array_equal(np.asarray(getattr(tr, name))[:n],
+                                      [getattr(x, name) for x in steps[:n]], err_msg=name)
+    # the loop's optimal split is a search on H, which is flat to rounding within about 0.01 W
+    # of its minimum (its curvature is the battery's -lambda_b beta): powers to 0.1 W, the
+    # battery's energy, which sums them, to 5 J
+    for name, atol in (("s", 1e-6), ("v", 1e-9), ("E_b", 5.0), ("P_d", 0.1), ("P_e", 0.1),
+                       ("P_m", 0.1), ("P_b", 0.1), ("P_f", 0.1), ("P_brake", 0.1),
+                       ("v_ref", 1e-9)):
+        np.testing.assert_allclose(np.asarray(getattr(tr, name))[:n],
+                                   [getattr(x, name) for x in steps[:n]], rtol=1e-8, atol=atol,
+                                   err_msg=name)
+    t = res.final.tot
+    for name in ("fuel", "road", "loss_engine", "loss_slip", "loss_motor", "loss_battery",
+                 "loss_brake", "loss_sync", "max_shortfall", "trip_time"):
+        assert float(getattr(t, name)) == pytest.approx(tot[name], rel=1e-8, abs=5.0), name
+    for name in ("mode_switches", "gear_switches"):
+        assert int(getattr(t, name)) == tot[name], name
+    assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0)
