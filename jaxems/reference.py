@@ -29,7 +29,8 @@ Contents (shapes for one route and one vehicle; T time steps, S = 4 * n_gears st
   (the best mode at the step's gear for a costate), `ref_end` (E_b(t_f) for a constant
   costate), `ref_bisect` (bisection on lambda_b, no battery limits), `ref_fuel_power` and
   `ref_dp` (the minimal fuel by DP over a battery-energy grid, with limits).
-- The plant: `ref_plant` (the closed loop's step as a loop over steps under a scripted
+- The plant: `ref_track` (what it reads of the route and the reference, by loops) and
+  `ref_plant` (the closed loop's step as a loop over steps under a scripted
   controller: reference speed by position, stops, mean gradient, Level 0's state, open
   driveline, synchronisation, the split, battery limits and the final braking's cap, motion,
   totals).
@@ -1343,14 +1344,51 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
     return int(np.argmax(cap))
 
 
+def ref_track(route: Route, pred, end_cap: bool = True) -> SimpleNamespace:
+    """What the plant reads of a route and its Level 3 prediction (`plant.make_track`), by
+    loops: the reference's step boundaries (positions, speeds; the steps after the trip at the
+    route's end and its end speed), node positions (padding nodes beyond the end), gradients,
+    heights, the first stop at or after each node (+inf / 0 where none follows) and the
+    position from which the reference needs no more traction (+inf without the cap)."""
+    mask = np.asarray(pred.mask, bool)
+    T = mask.shape[0]
+    length = float(pred.length)
+    prof_s, prof_v = np.asarray(pred.profile.s, float), np.asarray(pred.profile.v, float)
+    nodes = np.asarray(route.mask, bool)
+    last = max(i for i in range(nodes.shape[0]) if np.asarray(pred.profile.mask)[i])
+    v_end = prof_v[last]
+    ref_s = [float(pred.s[k]) if mask[k] else length for k in range(T)] + [length]
+    ref_v = [float(pred.v_ref[k]) if mask[k] else v_end for k in range(T)] + [v_end]
+    N = nodes.shape[0]
+    grid_s = [prof_s[i] if nodes[i] else length + 1.0 + i for i in range(N)]
+    stop = np.asarray(route.stop, float)
+    stop_s, stop_t = [np.inf] * (N + 1), [0.0] * (N + 1)
+    for i in range(N):
+        for j in range(i, N):
+            if nodes[j] and stop[j] > 0:
+                stop_s[i], stop_t[i] = prof_s[j], stop[j]
+                break
+    grade = np.asarray(route.grade, float)
+    ds = np.broadcast_to(np.asarray(route.ds, float), grade.shape)
+    rise = [0.0]
+    for i in range(1, N):
+        rise.append(rise[-1] + grade[i - 1] * ds[i - 1])
+    pulls = [k for k in range(T) if mask[k] and float(pred.P_d[k]) > 0]
+    final_s = (ref_s[pulls[-1] + 1] if pulls else ref_s[0]) if end_cap else np.inf
+    return SimpleNamespace(ref_s=np.array(ref_s), ref_v=np.array(ref_v), grid_s=np.array(grid_s),
+                           grade=grade, rise=np.array(rise), stop_s=np.array(stop_s),
+                           stop_t=np.array(stop_t), length=length, final_s=float(final_s))
+
+
 def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0: int,
               gear0: int):
     """The plant (`plant.run_plant`) as a loop over its steps, under a scripted controller.
 
-    track: the plant's `Track` (its arrays are read with NumPy); commands: (mode, gear, lam,
-    P_b, catch_up), each (n_steps,), the controller's command at each step (P_b nan: the
-    optimal split at lam, found by the refined brute force of `split_table`). The truck starts
-    at the reference's first position and speed, E_b = soc0 E_b_max, in (mode0, gear0).
+    track: `ref_track`'s (or the plant's `Track`, its arrays read with NumPy); commands:
+    (mode, gear, lam, P_b, catch_up), each (n_steps,), the controller's command at each step
+    (P_b nan: the optimal split at lam, found by the refined brute force of `split_table`).
+    The truck starts at the reference's first position and speed, E_b = soc0 E_b_max, in
+    (mode0, gear0).
     Returns (steps: list of `RefPlantStep`, totals: dict of the run's energies (J), switch
     counts and trip time (s), final: dict of the state after the last step)."""
     f = _veh(vp)
@@ -1507,4 +1545,4 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     return steps, tot, final
 
 
-__all__ += ["RefPlantStep", "ref_plant"]
+__all__ += ["RefPlantStep", "ref_plant", "ref_track"]

@@ -465,8 +465,9 @@ def run_script(vp, cmds):
 @given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 40e3),
        battery=st.floats(0.2e6, 4e6), hybrid=st.booleans())
 def test_plant_equals_its_loop(seed, mass, battery, hybrid):
-    """The plant's scan equals the plant written as a loop over its steps
-    (`reference.ref_plant`) under a scripted controller: the greedy run's states, a random
+    """The plant's track is the one built by loops (`reference.ref_track`), and its scan equals
+    the plant written as a loop over its steps (`reference.ref_plant`) under a scripted
+    controller: the greedy run's states, a random
     state requested at one step in eight (Level 0 must refuse many), the optimal split at a
     costate or a plan's battery power with or without catching up on the battery; the route
     has two stops, a climb and a descent; a small battery reaches its limits."""
@@ -484,7 +485,12 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
     up = rng.random(N_PLANT) < 0.5
     cmds = (mode, gear, lam, P_b, up)
     track, res = run_script(vp, tuple(jnp.asarray(a) for a in cmds))
-    steps, tot, final = R.ref_plant(vp, track, cmds, N_PLANT, 1.0, ps.MO, 0)
+    ref_track = R.ref_track(ROUTE, PRED)
+    for name in ("ref_s", "ref_v", "grid_s", "grade", "rise", "stop_s", "stop_t", "length",
+                 "final_s"):
+        np.testing.assert_allclose(np.asarray(getattr(track, name)), getattr(ref_track, name),
+                                   rtol=1e-12, atol=1e-9, err_msg=name)
+    steps, tot, final = R.ref_plant(vp, ref_track, cmds, N_PLANT, 1.0, ps.MO, 0)
     tr = res.trace
     n = int(np.sum(np.asarray(tr.t) < float(res.final.tot.trip_time))) if res.final.done \
         else N_PLANT
@@ -494,10 +500,10 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
                                       [getattr(x, name) for x in steps[:n]], err_msg=name)
     # the loop's optimal split is a search on H, which is flat to rounding within about 0.01 W
     # of its minimum (its curvature is the battery's -lambda_b beta): powers to 0.1 W, the
-    # battery's energy, which sums them, to 5 J
-    for name, atol in (("s", 1e-6), ("v", 1e-9), ("E_b", 5.0), ("P_d", 0.1), ("P_e", 0.1),
+    # battery's energy, which sums them, to 5 J, speeds short of their target to 1e-6 m/s
+    for name, atol in (("s", 1e-5), ("v", 1e-6), ("E_b", 5.0), ("P_d", 0.1), ("P_e", 0.1),
                        ("P_m", 0.1), ("P_b", 0.1), ("P_f", 0.1), ("P_brake", 0.1),
-                       ("v_ref", 1e-9)):
+                       ("v_ref", 1e-6)):
         np.testing.assert_allclose(np.asarray(getattr(tr, name))[:n],
                                    [getattr(x, name) for x in steps[:n]], rtol=1e-8, atol=atol,
                                    err_msg=name)
