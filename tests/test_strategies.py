@@ -8,6 +8,7 @@ with the paper), stated per test.
 """
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -127,6 +128,41 @@ def test_ecms_feedback_counts_the_kinetic_energy(E, v, ke, kp):
     assert lam == pytest.approx(want, rel=1e-12, abs=1e-12)
     assert float(S.ecms_lambda(p, VP, E + 1e5, v)) >= lam
     assert float(S.ecms_lambda(p, VP, E, v + 1.0)) >= lam
+
+
+_ecms = xla.jit(S.ecms_controller)
+
+
+@settings(max_examples=40)
+@given(E=st.floats(0.0, 4e6), v=st.floats(0.5, 25.0),
+       P_req=st.floats(-300e3, 400e3, allow_subnormal=False),  # XLA's CPU flushes them
+       grade=st.floats(-0.06, 0.06, allow_subnormal=False), s_cur=st.integers(0, 47),
+       since=st.integers(0, 5))
+def test_ecms_controller_is_the_one_step_minimum(E, v, P_req, grade, s_cur, since):
+    """The baseline's decision: the state of least Hamiltonian (the brute-force split of
+    `reference.split_table`) plus switching cost from the current state
+    (`reference.ref_cost_matrix`), at its feedback costate; the current state where no state
+    is feasible or the last switch is fewer than `dwell` steps ago."""
+    from jaxems import plant as P
+    from jaxems import reference as R
+    from jaxems.switching import SwitchCostParams
+
+    prm = SwitchCostParams()
+    p = S.EcmsParams(lam0=-2.2, kp=5.0, soc_ref=0.5, ke_share=0.15, dwell=3, switch=prm)
+    n_g = VP.gear_ratio.shape[0]
+    obs = P.Obs(k=0, j=0, frac=0.0, s=0.0, v=v, E_b=E, mode=s_cur // n_g, gear=s_cur % n_g,
+                grade=grade, P_req=P_req, v_op=v)
+    since1, cmd = _ecms(p, jnp.asarray(since), VP, obs)
+    lam = float(np.clip(-2.2 + 5.0 * ((E + 0.075 * float(VP.mass) * v**2)
+                                      / float(VP.E_b_max) - 0.5), -6.0, -0.3))
+    H = R.split_table(VP, [P_req], [v], lam).H[0].reshape(-1)
+    cost = H + R.ref_cost_matrix(VP, v, grade, lam, prm)[s_cur]
+    i = int(np.argmin(cost))
+    want = i if np.isfinite(cost[i]) and since >= 3 else s_cur
+    assert float(cmd.lam) == pytest.approx(lam, rel=1e-12)
+    assert int(cmd.mode) * n_g + int(cmd.gear) == want
+    assert np.isnan(float(cmd.P_b))
+    assert int(since1) == (0 if want != s_cur else since + 1)
 
 
 def test_mpc_omega_is_the_recuperation_gear_on_steady_descents(runs):
