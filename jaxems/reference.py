@@ -795,6 +795,38 @@ class RefPlan(NamedTuple):
     stage_s: dict
 
 
+def ref_level1(vp: VehicleParams, P_d, v, grade, lam, dt, params: SwitchCostParams, init,
+               mask, n_grid: int = 33, levels: int = 12, stage_s: dict | None = None,
+               first: int | None = None):
+    """Level 1 over T steps: `split_table` at the costate (H dt per state, 0 for every state of
+    a step where none is feasible) and `viterbi_path` with `ref_cost_matrix` of each step
+    (speed, gradient, costate; the recuperation a switch loses braking, `ref_braking_loss`) as
+    transition costs, from init (S,) (the cost of each state before step 0); steps outside mask
+    keep the state; first, where given, the only state allowed at step 0 (the best path that
+    starts with that decision). P_d, v, grade, mask: (T,); lam: () or (T,). Returns
+    (`RefViterbi`, `RefSplit` (T, 4, n_gears)); stage_s, where given, gets the wall
+    seconds of the table ("level1_table") and of the DP ("viterbi")."""
+    t0 = time.perf_counter()
+    P_d, v, grade = (np.asarray(a, float) for a in (P_d, v, grade))
+    T = P_d.shape[0]
+    lam = np.broadcast_to(np.asarray(lam, float), (T,))
+    tab = split_table(vp, P_d, v, lam, n_grid, levels)
+    H = tab.H.reshape(T, -1) * dt
+    H[~np.any(np.isfinite(H), axis=1)] = 0.0
+    if first is not None:
+        H[0, np.arange(H.shape[1]) != first] = np.inf
+    t1 = time.perf_counter()
+    brake = ref_braking_loss(vp, tab.H, P_d, dt)
+
+    def costs(k):
+        return ref_cost_matrix(vp, v[k], grade[k], lam[k], params, brake[k])
+
+    vit = viterbi_path(H, costs, init, np.asarray(mask, bool))
+    if stage_s is not None:
+        stage_s.update(level1_table=t1 - t0, viterbi=time.perf_counter() - t1)
+    return vit, tab
+
+
 def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: int = 40,
                    n_steps: int | None = None, params: SwitchCostParams | None = None,
                    n_grid: int = 33, levels: int = 12) -> RefPlan:
@@ -826,26 +858,15 @@ def reference_plan(route: Route, vp: VehicleParams, dt: float = 1.0, n_iter_l2: 
     t2 = time.perf_counter()
     stage_s["level2"] = t2 - t1
     lam = c2.lam
-    tab = split_table(vp, pred.P_d, pred.v, lam, n_grid, levels)
-    H = tab.H.reshape(T, -1) * dt
-    none = ~np.any(np.isfinite(H), axis=1)
-    H[none] = 0.0
-    t3 = time.perf_counter()
-    stage_s["level1_table"] = t3 - t2
-    S = H.shape[1]
+    S = N_MODES * f.gear_ratio.shape[0]
     n_g = S // N_MODES
     init = np.zeros(S)
     if pred.v_ref[0] <= 0:
         init = np.full(S, np.inf)
         init[MO * n_g] = 0.0
-
-    brake = ref_braking_loss(vp, tab.H, pred.P_d, dt)
-
-    def costs(k):
-        return ref_cost_matrix(vp, pred.v[k], pred.grade[k], lam, params, brake[k])
-
-    vit = viterbi_path(H, costs, init, pred.mask)
-    stage_s["viterbi"] = time.perf_counter() - t3
+    vit, tab = ref_level1(vp, pred.P_d, pred.v, pred.grade, lam, dt, params, init, pred.mask,
+                          n_grid, levels, stage_s)
+    none = ~np.any(np.isfinite(tab.H.reshape(T, -1)), axis=1)
     path = vit.path
     mode, gear = path // n_g, path % n_g
     k = np.arange(T)
@@ -1545,4 +1566,4 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     return steps, tot, final
 
 
-__all__ += ["RefPlantStep", "ref_plant", "ref_track"]
+__all__ += ["RefPlantStep", "ref_level1", "ref_plant", "ref_track"]

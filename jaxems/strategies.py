@@ -903,18 +903,24 @@ def mpc_end_target(vp, track: pl.Track, opts: Options):
     return jnp.minimum(E0 + reserve, vp.E_b_max)
 
 
-def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
-    pred = level3(route, vp, dt, n_steps)
+def mpc_params(vp, pred: l3.Prediction, track: pl.Track, dt, opts: Options,
+               params) -> MpcParams:
+    """The MPC controller's `MpcParams` on a Level 3 prediction and its track."""
     h = max(opts.h1 + 1, opts.h2)
     padf = lambda a: jnp.concatenate([a, jnp.zeros(h, a.dtype)])  # noqa: E731
     end = jnp.maximum(jnp.sum(pred.mask) - 1, 0)
-    track = pl.make_track(route, pred, opts.end_cap)
     P_d, v, w = padf(pred.P_d), padf(pred.v), padf(mpc_omega(vp, pred))
     mask = jnp.concatenate([pred.mask, jnp.zeros(h, bool)])
-    p = MpcParams(P_d=P_d, v=v, grade=padf(pred.grade), mask=mask, w=w,
-                  gears=l2.select_gears(vp, P_d, v, w, mask), end=end,
-                  E_target=mpc_end_target(vp, track, opts),
-                  dt=jnp.asarray(dt, pred.v.dtype), switch=params)
+    return MpcParams(P_d=P_d, v=v, grade=padf(pred.grade), mask=mask, w=w,
+                     gears=l2.select_gears(vp, P_d, v, w, mask), end=end,
+                     E_target=mpc_end_target(vp, track, opts),
+                     dt=jnp.asarray(dt, pred.v.dtype), switch=params)
+
+
+def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+    pred = level3(route, vp, dt, n_steps)
+    track = pl.make_track(route, pred, opts.end_cap)
+    p = mpc_params(vp, pred, track, dt, opts, params)
     ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)
     c0 = (jnp.asarray(opts.lam0, pred.v.dtype), jnp.asarray(-10**6, jnp.int32))
     m0, g0 = _first_state(vp, pred, opts.lam0)

@@ -165,6 +165,69 @@ def test_ecms_controller_is_the_one_step_minimum(E, v, P_req, grade, s_cur, sinc
     assert int(since1) == (0 if want != s_cur else since + 1)
 
 
+@pytest.fixture(scope="module")
+def mpc_setup():
+    from jaxems import plant as P
+    from jaxems.switching import SwitchCostParams
+
+    route = load_route("short_track")
+    opts = S.Options()
+    pred = LEVEL3(route, VP, 1.0, S.steps_for_batch(route, VP))
+    track = P.make_track(route, pred, opts.end_cap)
+    prm = SwitchCostParams()
+    p = xla.jit(S.mpc_params, static_argnums=(3, 4))(VP, pred, track, 1.0, opts, prm)
+    ctrl = xla.jit(S._mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces))
+    return p, ctrl, opts, prm
+
+
+@settings(max_examples=20)
+@given(data=st.data())
+def test_mpc_level1_is_the_dp_over_its_horizon(mpc_setup, data):
+    """The MPC's decision at a plant step: Level 2's costate held between its samples, and
+    Level 1's first decision starts a least-cost path over the next h1 samples from the
+    measured state (the NumPy split table, switching costs and Viterbi loop of
+    `reference.ref_level1` at the costate the controller applies); the measured state where no
+    path is feasible."""
+    from jaxems import plant as P
+    from jaxems import reference as R
+
+    p, ctrl, opts, prm = mpc_setup
+    end = int(p.end)
+    # mostly where the demand changes within the horizon (a flat stretch decides little)
+    P_d = np.asarray(p.P_d)
+    moves = [j for j in range(end + 1) if np.ptp(P_d[j:j + opts.h1 + 2]) > 1e3]
+    j = data.draw(st.one_of(st.sampled_from(moves), st.integers(0, end)), "j")
+    s_cur = data.draw(st.integers(0, 47), "s_cur")
+    E = data.draw(st.floats(0.0, 1.0), "E_frac") * float(VP.E_b_max)
+    due = data.draw(st.booleans(), "due")
+    lam_prev = data.draw(st.floats(-3.0, -1.5), "lam_prev")
+    k = j + 3
+    n_g = VP.gear_ratio.shape[0]
+    obs = P.Obs(k=k, j=j, frac=0.0, s=0.0, v=float(p.v[j]), E_b=E, mode=s_cur // n_g,
+                gear=s_cur % n_g, grade=float(p.grade[j]), P_req=float(p.P_d[j]),
+                v_op=float(p.v[j]))
+    k_last = k - opts.t2 if due else k
+    (lam, k1), cmd = ctrl(p, (jnp.asarray(lam_prev), jnp.asarray(k_last, jnp.int32)), VP, obs)
+    lam = float(lam)
+    assert float(cmd.lam) == lam and int(k1) == (k if due else k_last)
+    if due:
+        assert -6.0 <= lam <= -0.3
+    else:
+        assert lam == lam_prev
+    w = slice(j + 1, j + 1 + opts.h1)
+    init = np.where(np.arange(4 * n_g) == s_cur, 0.0, np.inf)
+    window = (np.asarray(p.P_d)[w], np.asarray(p.v)[w], np.asarray(p.grade)[w], lam, 1.0, prm,
+              init, np.asarray(p.mask)[w])
+    vit, _ = R.ref_level1(VP, *window)
+    got = int(cmd.mode) * n_g + int(cmd.gear)
+    if not np.isfinite(vit.cost) or not window[-1][0]:
+        assert got == s_cur  # no feasible path, or nothing left to decide
+    else:
+        # an optimal first decision (the open mode's gears, for one, tie exactly)
+        best = R.ref_level1(VP, *window, first=got)[0].cost
+        assert best == pytest.approx(vit.cost, rel=1e-9, abs=1e-6)
+
+
 def test_mpc_omega_is_the_recuperation_gear_on_steady_descents(runs):
     """Brute force over the gears on every step of the short track's prediction."""
     from jaxems.levels import powersplit as ps
