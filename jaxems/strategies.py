@@ -963,9 +963,9 @@ class BoundTables(NamedTuple):
     """What dp-bound's DP needs of one vehicle on one prediction (J candidates per state).
 
     fuel, dEb, P_b: (T, J, S) each candidate's fuel (J; BIG where infeasible), E_b change (J)
-    and battery power (W); C: (T, S, S) Level 1's switching costs; lams: (J,) the candidates'
-    costates; lam_end: () the worth of E_b(tf) beyond the goal (Level 2's costate on its last
-    piece)."""
+    and battery power (W); C: (T, S, S) Level 1's switching costs, priced at lam_sw: (T,)
+    Level 2's costate; lams: (J,) the candidates' costates; lam_end: () the worth of E_b(tf)
+    beyond the goal (Level 2's costate on its last piece)."""
 
     fuel: Any
     dEb: Any
@@ -973,6 +973,7 @@ class BoundTables(NamedTuple):
     C: Any
     lams: Any
     lam_end: Any
+    lam_sw: Any
 
 
 class BoundPath(NamedTuple):
@@ -1015,7 +1016,8 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
         return sw.switch_cost_matrix(vp, v, g, lam, params, l1.braking_loss(vp, H, P_d, dt))
 
     Cs = jax.vmap(costs)(pred.P_d, pred.v, pred.grade, lam_sw)  # (T, S, S)
-    return BoundTables(fuel=fuel, dEb=dEb, P_b=Pb, C=Cs, lams=lams, lam_end=lam_end)
+    return BoundTables(fuel=fuel, dEb=dEb, P_b=Pb, C=Cs, lams=lams, lam_end=lam_end,
+                       lam_sw=lam_sw)
 
 
 def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,

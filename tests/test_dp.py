@@ -180,7 +180,7 @@ def _bound_instance(rng, T, n_E, aligned, standing, mask):
     tab = S_.BoundTables(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
                          P_b=jnp.asarray(rng.uniform(-1e5, 1e5, fuel.shape)), C=jnp.asarray(C),
                          lams=jnp.asarray(-np.arange(1.0, _BJ + 1)),
-                         lam_end=jnp.asarray(rng.uniform(-3.0, -1.0)))
+                         lam_end=jnp.asarray(rng.uniform(-3.0, -1.0)), lam_sw=None)
     pred = _Pred(v=jnp.ones(T), mask=jnp.asarray(mask),
                  v_ref=jnp.full(T + 1, 0.0 if standing else 5.0))
     s_init = ps.MO * (_BS // ps.N_MODES) if standing else -1

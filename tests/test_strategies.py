@@ -306,6 +306,42 @@ def test_dp_bound_grid_refinement():
     assert abs(fuel[1] - fuel[0]) / fuel[1] < 1e-3
 
 
+def test_dp_bound_tables_are_the_splits_and_switching_costs():
+    """dp-bound's candidates are each state's optimal split at each candidate costate (the
+    brute-force `reference.split_table`: fuel, and the battery's energy change from eq. 7),
+    infeasible ones at BIG, and its switching costs Level 1's (`reference.ref_cost_matrix` with
+    the braking loss, `reference.ref_braking_loss`) at Level 2's costate of each step."""
+    from jaxems import reference as R
+    from jaxems import switching as sw
+
+    route = load_route("short_track")
+    pred = LEVEL3(route, VP, 1.0, S.steps_for_batch(route, VP))
+    prm = sw.SwitchCostParams()
+    opts = S.Options()
+    tab = xla.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts, prm)
+    m = np.asarray(pred.mask)
+    n = int(m.sum())
+    P_d, v, grade = (np.asarray(a)[:n] for a in (pred.P_d, pred.v, pred.grade))
+    beta = float(VP.beta)
+    for j, lam in enumerate(np.asarray(tab.lams)):
+        ref = R.split_table(VP, P_d, v, lam)
+        feas = ref.feasible.reshape(n, -1)
+        fuel = np.where(feas, ref.P_f.reshape(n, -1), S.BIG)
+        Pb = ref.P_b.reshape(n, -1)
+        # (the table's split is analytic, the reference's a search on a function that is flat
+        # to rounding within about 0.01 W of its minimum)
+        np.testing.assert_allclose(np.asarray(tab.fuel)[:n, j], fuel, rtol=1e-9, atol=0.1)
+        np.testing.assert_allclose(np.asarray(tab.dEb)[:n, j], -(Pb + beta * Pb**2),
+                                   rtol=1e-9, atol=0.1)
+    lam_sw = np.asarray(tab.lam_sw)[:n]
+    H = R.split_table(VP, P_d, v, lam_sw).H
+    brake = R.ref_braking_loss(VP, H, P_d, 1.0)
+    for k in range(0, n, 7):
+        np.testing.assert_allclose(np.asarray(tab.C)[k],
+                                   R.ref_cost_matrix(VP, v[k], grade[k], lam_sw[k], prm,
+                                                     brake[k]), rtol=1e-9, atol=1e-6)
+
+
 def test_dp_bound_predicts_what_the_plant_burns(runs):
     r = runs["dp-bound"]
     ex = r.extra
