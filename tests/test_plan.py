@@ -1,7 +1,7 @@
 """Plans that the plant follows: the battery-power trim on M_c steps, Level 2's pieces as
 targets, the plan's battery energy within the limits, and the plant-drift compensation
-(strategies.trim_battery_power, piece_targets, battery_path, compensate), on the short track at
-25 t against plain loops."""
+(strategies.trim_battery_power, piece_targets, battery_path, compensate), Level 1's costate
+at Level 2's guards (guard_lambda), on the short track at 25 t against plain loops."""
 
 import jax.numpy as jnp
 import numpy as np
@@ -361,3 +361,45 @@ def test_sustaining_level1_equals_its_dps_run_one_by_one(target):
         np.testing.assert_allclose(np.asarray(getattr(r, f)), np.asarray(getattr(r_want, f)),
                                    rtol=1e-9, atol=1e-6, err_msg=f)
     assert float(r.cost) > float(jnp.sum(r.H))  # the path's switches cost something
+
+
+_GT, _GK = 12, 3  # steps, pieces of the guard test
+
+
+@settings(max_examples=30)
+@given(data=hst.data())
+def test_guard_lambda_is_each_pieces_side_where_it_jumps(data):
+    """Level 1's costate at Level 2's guards (`guard_lambda`) against a loop over the steps:
+    on a piece whose B+ and B- paths end apart (beyond tol), the bracket's end of the side
+    Level 2's I2b sequence is on at the step, moved `gap` outward; elsewhere Level 2's costate;
+    within the bisection bracket."""
+    cuts = sorted(data.draw(hst.lists(hst.integers(1, _GT - 1), min_size=_GK - 1,
+                                      max_size=_GK - 1), "cuts"))
+    bnd = np.array([0, *cuts, _GT])
+    floats = lambda lo, hi, n: np.asarray(data.draw(hst.lists(  # noqa: E731
+        hst.floats(lo, hi, allow_subnormal=False), min_size=n, max_size=n)))
+    lam_lo = floats(-5.9, -1.0, _GK)
+    lam_hi = lam_lo + floats(0.0, 0.5, _GK)
+    lam = floats(-6.0, -0.3, _GT)
+    flat = np.asarray(data.draw(hst.lists(hst.booleans(), min_size=_GT, max_size=_GT)))
+    dE_plus = floats(-1e5, 1e5, _GT)
+    dE_minus = np.where(flat, dE_plus, floats(-1e5, 1e5, _GT))
+    sel = np.asarray(data.draw(hst.lists(hst.sampled_from([0.0, 1.0]), min_size=_GT,
+                                         max_size=_GT)))
+    tol, gap = 4e3, 0.05
+    c2 = l2.CostateResult(*[None] * len(l2.CostateResult._fields))._replace(
+        lam=jnp.asarray(lam), lam_lo=jnp.asarray(lam_lo), lam_hi=jnp.asarray(lam_hi),
+        boundaries=jnp.asarray(bnd), dE_plus=jnp.asarray(dE_plus),
+        dE_minus=jnp.asarray(dE_minus), sel=jnp.asarray(sel))
+    got = np.asarray(S.guard_lambda(c2, tol, gap))
+    lo_b, hi_b = l2.LAM_BRACKET
+    for k in range(_GT):
+        p = min(max(i for i in range(_GK + 1) if bnd[i] <= k), _GK - 1)
+        steps = [i for i in range(_GT) if bnd[p] <= i < bnd[p + 1]]
+        jump = abs(sum(dE_plus[i] - dE_minus[i] for i in steps)) > tol
+        if jump:
+            want = lam_lo[p] - gap if sel[k] > 0.5 else lam_hi[p] + gap
+        else:
+            want = lam[k]
+        assert got[k] == pytest.approx(min(max(want, lo_b), hi_b), rel=1e-12), k
+

@@ -514,3 +514,19 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
     for name in ("mode_switches", "gear_switches"):
         assert int(getattr(t, name)) == tot[name], name
     assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0)
+
+
+def test_engine_speed_nodes_interpolate_the_moving_steps_by_position():
+    """The engine speed the iteration feeds back to Level 3 at each node of the route: the
+    plan's speeds of the steps that move, interpolated by position (held beyond the first and
+    the last; standing steps left out), by a loop over the nodes with numpy's interp."""
+    from jaxems import strategies as S
+
+    T = PRED.v.shape[0]
+    w = 100.0 + 50.0 * np.sin(np.arange(T) / 7.0)
+    got = np.asarray(S._engine_speed_nodes(ROUTE, PRED, jnp.asarray(w)))
+    m = np.asarray(PRED.mask) & (np.asarray(PRED.v) > 0)
+    s, ws = np.asarray(PRED.s)[m], w[m]
+    assert np.all(np.diff(s) > 0) and (~m & np.asarray(PRED.mask)).sum() >= 10  # stops
+    want = [np.interp(x, s, ws) for x in np.asarray(PRED.profile.s)]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
