@@ -14,6 +14,7 @@ the field and the file.
 from __future__ import annotations
 
 import math
+import numbers
 import tomllib
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -152,6 +153,31 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
 _SECTIONS = sorted({s for s, _ in _SCHEMA})
 
 
+_NUMBER_RULES = {
+    "finite": (lambda x: True, ""),
+    "pos": (lambda x: x > 0, "must be > 0"),
+    "nonneg": (lambda x: x >= 0, "must be >= 0"),
+    "frac": (lambda x: 0 < x <= 1, "must be in (0, 1]"),
+    "unit": (lambda x: 0 <= x <= 1, "must be in [0, 1]"),
+    "int": (lambda x: x == int(x) and 1 <= x <= 32, "must be a whole number from 1 to 32"),
+}
+
+
+def check_number(value: Any, kind: str, where: str, error: type = ValueError) -> float:
+    """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
+    (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32); else raises `error` naming
+    `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise error(f"{where}: expected a number (got {value!r})")
+    x = float(value)
+    if not math.isfinite(x):
+        raise error(f"{where}: expected a finite number (got {value!r})")
+    ok, words = _NUMBER_RULES[kind]
+    if not ok(x):
+        raise error(f"{where}: {words} (got {value!r})")
+    return x
+
+
 def _check(value: Any, kind: str, where: str) -> np.ndarray:
     def fail(why: str) -> VehicleError:
         return VehicleError(f"{where}: {why} (got {value!r})")
@@ -171,22 +197,7 @@ def _check(value: Any, kind: str, where: str) -> np.ndarray:
         if kind == "curve-" and np.any(arr > 0):
             raise fail("engine-brake torques must be <= 0")
         return arr
-    if isinstance(value, bool) or not isinstance(value, int | float):
-        raise fail("expected a number")
-    x = float(value)
-    if not math.isfinite(x):
-        raise fail("expected a finite number")
-    if kind == "pos" and x <= 0:
-        raise fail("must be > 0")
-    if kind == "nonneg" and x < 0:
-        raise fail("must be >= 0")
-    if kind == "frac" and not (0 < x <= 1):
-        raise fail("must be in (0, 1]")
-    if kind == "unit" and not (0 <= x <= 1):
-        raise fail("must be in [0, 1]")
-    if kind == "int" and (x != int(x) or x < 1 or x > 32):
-        raise fail("must be a whole number from 1 to 32")
-    return np.float64(x)
+    return np.float64(check_number(value, kind, where, VehicleError))
 
 
 def params_from_dict(doc: dict, source: str = "<dict>") -> VehicleParams:
@@ -246,13 +257,9 @@ def with_overrides(
 ) -> VehicleParams:
     """The user-facing overrides of the CLI and sweeps, validated (mass > 0, battery > 0)."""
     if mass_kg is not None:
-        if not (math.isfinite(mass_kg) and mass_kg > 0):
-            raise VehicleError(f"mass_kg: must be a positive number (got {mass_kg})")
-        vp = vp.replace(mass=mass_kg)
+        vp = vp.replace(mass=check_number(mass_kg, "pos", "mass_kg", VehicleError))
     if battery_MJ is not None:
-        if not (math.isfinite(battery_MJ) and battery_MJ > 0):
-            raise VehicleError(f"battery_MJ: must be a positive number (got {battery_MJ})")
-        vp = vp.replace(E_b_max=battery_MJ * 1e6)
+        vp = vp.replace(E_b_max=check_number(battery_MJ, "pos", "battery_MJ", VehicleError) * 1e6)
     return vp
 
 

@@ -57,7 +57,7 @@ from typing import Any
 
 import numpy as np
 
-from .params import _SCHEMA, VehicleError, VehicleParams, load_vehicle
+from .params import _SCHEMA, VehicleError, VehicleParams, check_number, load_vehicle
 from .route import Route, RouteError
 
 FORMAT_VERSION = 1
@@ -196,19 +196,7 @@ def grid_field(key: str) -> tuple[str, float, str]:
 
 
 def _check_value(x: Any, kind: str, where: str) -> float:
-    if isinstance(x, bool) or not isinstance(x, int | float):
-        raise SweepError(f"{where}: expected a number (got {x!r})")
-    x = float(x)
-    bad = {
-        "pos": x <= 0, "nonneg": x < 0, "frac": not 0 < x <= 1, "unit": not 0 <= x <= 1,
-        "finite": False,
-    }
-    if not math.isfinite(x):
-        raise SweepError(f"{where}: expected a finite number (got {x!r})")
-    if bad.get(kind, False):
-        need = {"pos": "> 0", "nonneg": ">= 0", "frac": "in (0, 1]", "unit": "in [0, 1]"}[kind]
-        raise SweepError(f"{where}: must be {need} (got {x:g})")
-    return x
+    return check_number(x, kind, where, SweepError)
 
 
 def _grid_values(spec: Any, where: str) -> list:

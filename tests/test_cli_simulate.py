@@ -76,8 +76,8 @@ def test_simulate_registered():
     "args,words",
     [
         (["--strategy", "greedy"], "strategy: unknown 'greedy'"),
-        (["--mass", "-5"], "mass_kg: must be a positive"),
-        (["--battery-MJ", "0"], "battery_MJ: must be a positive"),
+        (["--mass", "-5"], "mass_kg: must be > 0"),
+        (["--battery-MJ", "0"], "battery_MJ: must be > 0"),
         (["--n-iter", "0"], "--n-iter: must be a whole number >= 1"),
     ],
 )
@@ -91,8 +91,8 @@ def test_simulate_bad_options_in_process(capsys, args, words):
     "args,words",
     [
         (["short_track", "--strategy", "greedy"], "unknown 'greedy'"),
-        (["short_track", "--mass", "-5"], "mass_kg: must be a positive"),
-        (["short_track", "--battery-MJ", "0"], "battery_MJ: must be a positive"),
+        (["short_track", "--mass", "-5"], "mass_kg: must be > 0"),
+        (["short_track", "--battery-MJ", "0"], "battery_MJ: must be > 0"),
         (["no_such_dir/no_such_route.vdri"], "no such file"),
     ],
 )
