@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxems import dp, stack_vehicles
+from jaxems import dp, stack_vehicles, xla
 from jaxems import switching as sw
 from jaxems.levels import level1 as l1
 from jaxems.levels import powersplit as ps
@@ -92,7 +92,7 @@ def make_chunk(key, vps, T, B):
     return stage, xs, consts, dconsts, v, grade, lam, vp_b
 
 
-@jax.jit
+@xla.jit
 def dp_level1(stage, xs, dconsts):
     """The Level 1 DP as `level1_full` runs it for dt_M == dt_G (`relax_same_open_time` on
     the states with the open mode's merged, `merge_open`: 37 x 37 relaxations a step, counted
@@ -102,14 +102,14 @@ def dp_level1(stage, xs, dconsts):
     return r.path, r.cost
 
 
-@jax.jit
+@xla.jit
 def dp_structured(stage, xs, consts):
     init = jnp.zeros(stage.shape[1:], stage.dtype)
     r = dp.viterbi(stage, l1.structured_transition(xs, consts), init)
     return r.path, r.cost
 
 
-@jax.jit
+@xla.jit
 def dp_dense(stage, C):
     init = jnp.zeros(stage.shape[1:], stage.dtype)
     r = dp.viterbi(stage, dp.dense_transition(C), init)
@@ -121,7 +121,7 @@ def _one_config(stage, xs, consts):
     return r.path, r.cost
 
 
-dp_vmapped = jax.jit(jax.vmap(_one_config, in_axes=(-1, -1, -1), out_axes=-1))
+dp_vmapped = xla.jit(jax.vmap(_one_config, in_axes=(-1, -1, -1), out_axes=-1))
 
 
 def main(argv=None) -> int:
@@ -202,23 +202,23 @@ def main(argv=None) -> int:
     g1 = jnp.asarray(rng.uniform(-0.05, 0.05, N), jnp.float32)
     Pd1 = jnp.asarray(rng.uniform(-1e5, 2e5, N), jnp.float32)
     prm = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), sw.SwitchCostParams())
-    tb = jax.jit(l1._tables)(vp1, Pd1, v1, g1, jnp.float32(-2.0), jnp.float32(0.01), prm)
+    tb = xla.jit(l1._tables)(vp1, Pd1, v1, g1, jnp.float32(-2.0), jnp.float32(0.01), prm)
     init = jnp.where(jnp.arange(S) == 2 * 12 + 9, 0.0, jnp.inf).astype(jnp.float32)
 
-    @jax.jit
+    @xla.jit
     def mpc_solve(stage, xs, dconsts, init):  # as the strategies run it: open mode merged
         return l1.solve_dp(None, None, stage, xs, None, dconsts, init, None, first=True,
                            fast=True)
 
-    @jax.jit
+    @xla.jit
     def mpc_solve_48(stage, xs, dconsts, init):
         return dp.viterbi_first(stage, l1.fast_transition(xs, dconsts), init)
 
-    @jax.jit
+    @xla.jit
     def mpc_solve_structured(stage, xs, consts, init):
         return dp.viterbi_first(stage, l1.structured_transition(xs, consts), init)
 
-    @jax.jit
+    @xla.jit
     def mpc_solve_with_tables(vp, P_d, v, grade, lam, init):
         t = l1._tables(vp, P_d, v, grade, lam, jnp.float32(0.01), prm)
         return l1.solve_dp(

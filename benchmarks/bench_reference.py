@@ -11,7 +11,8 @@ the Viterbi DP with switching costs (no plant run).
 - NumPy: `jaxems.reference.reference_plan` for ONE configuration (the first of the batch),
   float64, `ref_repeats` runs; wall_s is the median, stage_s the per-stage seconds of the
   median run (level3, level2, level1_table, viterbi).
-- JAX: `jaxems.reference.kernel_plan` under `jax.jit(jax.vmap(...))` over `batch` vehicle
+- JAX: `jaxems.reference.kernel_plan` under `xla.jit(jax.vmap(...))` (jaxems' jit, as the
+  library compiles; `jax.jit` before 2026-11-24) over `batch` vehicle
   configurations (masses 15-40 t x batteries 1-8 MJ, a grid cycled to the batch), float32
   (with 64-bit types off, as sweeps run) and float64. The first call compiles (compile_s =
   first call minus the median), then `repeats` timed calls: median_s, configs_per_s =
@@ -87,19 +88,20 @@ def _timed(f, args, repeats):
 
 def _time_jax(route, vps, vp0, params, n_steps, dtype, repeats, single, stages):
     from jaxems import reference as ref
+    from jaxems import xla
 
     route, vps, vp0, params = (_cast(x, dtype) for x in (route, vps, vp0, params))
     plan = lambda r, vp, p: ref.kernel_plan(r, vp, p, dt=1.0, n_steps=n_steps)  # noqa: E731
-    out, t = _timed(jax.jit(jax.vmap(plan, in_axes=(None, 0, None))), (route, vps, params),
+    out, t = _timed(xla.jit(jax.vmap(plan, in_axes=(None, 0, None))), (route, vps, params),
                     repeats)
     if single:  # one configuration, jitted without vmap
-        _, ts = _timed(jax.jit(plan), (route, vp0, params), repeats)
+        _, ts = _timed(xla.jit(plan), (route, vp0, params), repeats)
         t["single"] = {**ts, "configs_per_s": 1.0 / ts["median_s"]}
     if stages:  # each stage on its own, vmapped over the batch
-        l3 = jax.jit(jax.vmap(lambda r, vp: ref.kernel_level3(r, vp, dt=1.0, n_steps=n_steps),
+        l3 = xla.jit(jax.vmap(lambda r, vp: ref.kernel_level3(r, vp, dt=1.0, n_steps=n_steps),
                               in_axes=(None, 0)))
-        l2 = jax.jit(jax.vmap(lambda vp, pred: ref.kernel_level2(vp, pred, dt=1.0).lam0))
-        l1 = jax.jit(jax.vmap(lambda vp, pred, lam, p: ref.kernel_level1(vp, pred, lam, p, dt=1.0),
+        l2 = xla.jit(jax.vmap(lambda vp, pred: ref.kernel_level2(vp, pred, dt=1.0).lam0))
+        l1 = xla.jit(jax.vmap(lambda vp, pred, lam, p: ref.kernel_level1(vp, pred, lam, p, dt=1.0),
                               in_axes=(0, 0, 0, None)))
         pred, t3 = _timed(l3, (route, vps), repeats)
         lam, t2 = _timed(l2, (vps, pred), repeats)

@@ -59,6 +59,7 @@ def main(argv=None) -> int:
     from jaxems import plant as pl
     from jaxems import strategies as S
     from jaxems import switching as sw
+    from jaxems import xla
     from jaxems.io import load_route
     from jaxems.levels import battery as l2
     from jaxems.levels import level1 as l1
@@ -74,7 +75,7 @@ def main(argv=None) -> int:
            "repeats": args.repeats, "device": str(jax.devices()[0]), "stages": {}}
 
     def timed(name, f, *a):
-        f = jax.jit(f)
+        f = xla.jit(f)
         t = time.perf_counter()
         res = jax.block_until_ready(f(*a))
         compile_s = time.perf_counter() - t
@@ -98,9 +99,9 @@ def main(argv=None) -> int:
     c2 = timed("level2", v(lambda vp, p, w: l2.costate_kernel(
         vp, p.P_d, p.v, w, p.mask, dt, max_pieces=opts.l2_pieces)), vps, pred, w0)
 
-    lam, pieces = jax.jit(v(lambda vp, p, c: S.level1_targets(vp, p, c, S.no_drift(p), opts)))(
+    lam, pieces = xla.jit(v(lambda vp, p, c: S.level1_targets(vp, p, c, S.no_drift(p), opts)))(
         vps, pred, c2)
-    trac = jax.jit(v(lambda vp, p: l1.traction_table(vp, p.v, p.grade, params)))(vps, pred)
+    trac = xla.jit(v(lambda vp, p: l1.traction_table(vp, p.v, p.grade, params)))(vps, pred)
 
     def tables(vp, p, lam_t, tr):
         return l1._tables(vp, p.P_d, p.v, p.grade, lam_t, dt, params, tr)
