@@ -296,6 +296,11 @@ def _pb_of_pm(f, pm0, P_m):
     return np.where(d > 0, d / f.eta_m, d * f.eta_m)
 
 
+def _pm_of_pb(f, pm0, P_b):
+    """Motor output for battery power P_b (eq. 4), motor friction pm0."""
+    return pm0 + np.where(P_b > 0, f.eta_m * P_b, P_b / f.eta_m)
+
+
 def _caps(f, mode: int, w, launch):
     """What `mode` (index) can do at gearbox speed w (rad/s), whatever the demand: (runs,
     motor connected, engine connected, slip factor k, engine output range pe_lo, pe_hi at the
@@ -348,7 +353,7 @@ def _ranges(f, mode: int, P_d, w, launch) -> _Ranges:
 def _evaluate(f, r: _Ranges, P_d, lam, P_b):
     """H, P_f, P_m at battery powers P_b (broadcast against r's shape + trailing axes)."""
     if r.cm:
-        P_m = r.pm0 + np.where(P_b > 0, f.eta_m * P_b, P_b / f.eta_m)
+        P_m = _pm_of_pb(f, r.pm0, P_b)
     else:
         P_m = np.zeros(np.shape(P_b))
     if r.ce:
@@ -704,7 +709,7 @@ def ref_fuel_power(vp: VehicleParams, P_d, w, gear, P_b):
     brakes absorb a surplus, slipping clutch below idle in gear 1); +inf where infeasible.
     """
     f = _veh(vp)
-    eta_e, eta_m = f.eta_e, f.eta_m
+    eta_e = f.eta_e
     slip = gear == 0 and w < f.we_min
     we = f.we_min if slip else w
     kf = f.we_min / w if slip else 1.0
@@ -716,7 +721,7 @@ def ref_fuel_power(vp: VehicleParams, P_d, w, gear, P_b):
     pm0 = float(_motor_friction(f, w))
     m_ok = w <= f.wm_max
     P_b = np.asarray(P_b, float)
-    P_m = pm0 + np.where(P_b > 0, eta_m * P_b, P_b / eta_m)
+    P_m = _pm_of_pb(f, pm0, P_b)
     out = np.full(P_b.shape, np.inf)
 
     def engine_fuel(P_out):
@@ -1297,10 +1302,8 @@ def _state_caps(f, mode, gear, v):
                            pm0=float(pm0))
 
 
-def _pm_of_pb(f, c, P_b):
-    if not c.cm:
-        return 0.0
-    return c.pm0 + (f.eta_m * P_b if P_b > 0 else P_b / f.eta_m)
+def _pm_of_pb_state(f, c, P_b):
+    return float(_pm_of_pb(f, c.pm0, P_b)) if c.cm else 0.0
 
 
 def _pb_of_pm_state(f, c, P_m):
@@ -1490,7 +1493,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         P_dem = min(P_req, traction * (c.e_hi + c.m_lim))
         planned = bool(np.isfinite(c_pb[k]))
         if planned and not bool(c_up[k]):  # recover a switch's lost speed on the engine only
-            pm_cmd = _pm_of_pb(f, c, float(c_pb[k]))
+            pm_cmd = _pm_of_pb_state(f, c, float(c_pb[k]))
             cap_plan = traction * ((c.e_hi if c.ce else 0.0) + min(max(pm_cmd, 0.0), c.m_lim))
             P_dem = min(P_dem, max(P_need, cap_plan))
         if planned:
@@ -1509,7 +1512,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         pb_lo = max(pb_lo, _pb_of_pbi(f, (E_avail - E_ceil) / dt))
         P_b = min(max(P_b, min(pb_lo, pb_hi)), pb_hi)
         if traction > 0:
-            P_m = _pm_of_pb(f, c, P_b)
+            P_m = _pm_of_pb_state(f, c, P_b)
         else:
             P_m, P_b = 0.0, 0.0
         on = c.ce and traction > 0
