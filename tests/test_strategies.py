@@ -153,8 +153,7 @@ def test_ecms_controller_is_the_one_step_minimum(E, v, P_req, grade, s_cur, sinc
     obs = P.Obs(k=0, j=0, frac=0.0, s=0.0, v=v, E_b=E, mode=s_cur // n_g, gear=s_cur % n_g,
                 grade=grade, P_req=P_req, v_op=v)
     since1, cmd = _ecms(p, jnp.asarray(since), VP, obs)
-    lam = float(np.clip(-2.2 + 5.0 * ((E + 0.075 * float(VP.mass) * v**2)
-                                      / float(VP.E_b_max) - 0.5), -6.0, -0.3))
+    lam = float(S.ecms_lambda(p, VP, E, v))  # the formula: test_ecms_feedback_counts_...
     H = R.split_table(VP, [P_req], [v], lam).H[0].reshape(-1)
     cost = H + R.ref_cost_matrix(VP, v, grade, lam, prm)[s_cur]
     i = int(np.argmin(cost))
@@ -309,8 +308,9 @@ def test_dp_bound_grid_refinement():
 def test_dp_bound_tables_are_the_splits_and_switching_costs():
     """dp-bound's candidates are each state's optimal split at each candidate costate (the
     brute-force `reference.split_table`: fuel, and the battery's energy change from eq. 7),
-    infeasible ones at BIG, and its switching costs Level 1's (`reference.ref_cost_matrix` with
-    the braking loss, `reference.ref_braking_loss`) at Level 2's costate of each step."""
+    infeasible ones at BIG (nothing at a step no state can serve), and its switching costs
+    Level 1's (`reference.ref_cost_matrix` with the braking loss, `reference.ref_braking_loss`)
+    at Level 2's costate of each step."""
     from jaxems import reference as R
     from jaxems import switching as sw
 
@@ -326,8 +326,9 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
     for j, lam in enumerate(np.asarray(tab.lams)):
         ref = R.split_table(VP, P_d, v, lam)
         feas = ref.feasible.reshape(n, -1)
-        fuel = np.where(feas, ref.P_f.reshape(n, -1), S.BIG)
-        Pb = ref.P_b.reshape(n, -1)
+        some = feas.any(axis=1, keepdims=True)  # a step beyond every state's reach is free
+        fuel = np.where(some, np.where(feas, ref.P_f.reshape(n, -1), S.BIG), 0.0)
+        Pb = np.where(some, ref.P_b.reshape(n, -1), 0.0)
         # (the table's split is analytic, the reference's a search on a function that is flat
         # to rounding within about 0.01 W of its minimum)
         np.testing.assert_allclose(np.asarray(tab.fuel)[:n, j], fuel, rtol=1e-9, atol=0.1)
