@@ -1256,12 +1256,12 @@ def _fields(m: Metrics, vp) -> dict:
 # 0.525 configurations/s, compile 10.9 / 15.5 s, peak RSS 1.3 / 2.8 GB
 CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1, "dp-bound": 1,
          "conventional": 16, "baseline": 16}
-DEFAULT_CHUNK = 64
+assert set(CHUNK) == set(KERNELS), "every strategy has its chunk"
 
 
 def default_chunk(strategy: str) -> int:
     """`simulate_batch`'s chunk (vehicles vmapped at once per device) for ``chunk="auto"``."""
-    return CHUNK.get(check_strategy(strategy), DEFAULT_CHUNK)
+    return CHUNK[check_strategy(strategy)]
 
 
 def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
