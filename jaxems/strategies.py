@@ -10,7 +10,9 @@
   lambda_b = lambda0 + k_p ((E_b + k_e m v^2 / 2) / E_b_max - soc_ref), clipped to [-6, -0.3]:
   the feedback counts the share k_e of the kinetic energy that braking will return, so the
   battery keeps room for it while the truck is fast (a speed-dependent charge reference; it
-  needs the measured speed only).
+  needs the measured speed only). By default soc_ref is what the trip starts with, counted
+  the same way (the initial charge and the share of the start's kinetic energy), so that the
+  feedback holds the charge the trip started with, whatever that is.
 - ``multilevel``: the iteration scheme of section 3.3: Level 3 -> Level 2 -> Level 1 over the
   full horizon, `n_iter` times, omega (engine speed) and lambda_b fed back; iteration 0 starts
   from a constant engine speed (vehicle's ``prediction_engine_speed_rpm``, 1100 rpm as in
@@ -81,7 +83,9 @@ class Options(NamedTuple):
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
     window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share, dwell:
     baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
-    battery already; dwell: least steps between its switches); dp_n_E: E_b grid points of
+    battery already; soc_ref: the charge it holds, as a fraction of E_b_max with that share
+    counted, None: the trip's start, `ecms_params`; dwell: least steps between its switches);
+    dp_n_E: E_b grid points of
     dp-bound; dp_lams: number of costate values whose Level 1 splits are dp-bound's
     battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from E_b(t0) in
     dp-bound's terminal cost, beyond Level 2's costate (`bound_dp`); dp_attempts: dp-bound's DP
@@ -113,7 +117,7 @@ class Options(NamedTuple):
     t2: int = 1
     lam0: float = -2.2
     kp: float = 5.0
-    soc_ref: float = 0.5
+    soc_ref: float | None = None
     ke_share: float = 0.15
     dwell: int = 3
     dp_n_E: int = 101
@@ -692,13 +696,26 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     return since, pl.Command(mode=i // n_g, gear=i % n_g, lam=lam, P_b=jnp.nan)
 
 
+def ecms_params(vp, track: pl.Track, opts: Options, params) -> EcmsParams:
+    """The A-ECMS baseline's `EcmsParams`. Its charge reference soc_ref, unless opts gives one,
+    is what the trip starts with as its feedback counts it: (E_b(t0) + ke_share m v(t0)^2 / 2)
+    / E_b_max, from the plant's initial state (no preview): the charge the trip started with
+    is what it holds, at the start's speed (a fixed 0.5 drove a trip that started at 30 or 70 %
+    of the battery to half, 6-15 % of the battery off on Regional Delivery)."""
+    if opts.soc_ref is None:
+        v0 = track.ref_v[0]
+        soc_ref = (vp.soc0 * vp.E_b_max + opts.ke_share * 0.5 * vp.mass * v0**2) / vp.E_b_max
+    else:
+        soc_ref = jnp.asarray(opts.soc_ref)
+    return EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp), soc_ref=soc_ref,
+                      ke_share=jnp.asarray(opts.ke_share), dwell=jnp.asarray(opts.dwell),
+                      switch=params)
+
+
 def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
-    p = EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp),
-                   soc_ref=jnp.asarray(opts.soc_ref),
-                   ke_share=jnp.asarray(opts.ke_share), dwell=jnp.asarray(opts.dwell),
-                   switch=params)
     track = pl.make_track(route, pred, opts.end_cap)
+    p = ecms_params(vp, track, opts, params)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
     lam_first = res.trace.lam[0]
@@ -1392,7 +1409,7 @@ def _check_options(o: Options):
     if not isinstance(o.end_cap, bool):
         raise ValueError(f"end_cap: must be True or False (got {o.end_cap!r})")
     for k in ("soc_ref", "ke_share", "mpc_end_reserve"):
-        if not (0 <= getattr(o, k) <= 1):
+        if getattr(o, k) is not None and not (0 <= getattr(o, k) <= 1):
             raise ValueError(f"{k}: must be in [0, 1] (got {getattr(o, k)})")
     if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0
             and o.tau_E > 0):

@@ -114,6 +114,23 @@ def test_charge_sustenance(runs):
     assert abs(runs["baseline"]["delta_Eb_J"]) < 0.04 * size
 
 
+def test_baseline_holds_the_charge_the_trip_starts_with(runs):
+    """The A-ECMS's charge reference is the trip's start (its charge and the share of its
+    kinetic energy): its feedback is neutral there (lambda_b = lam0), and a trip that starts
+    at 30 or 70 % of the battery takes the same decisions and ends the same energy from its
+    start as one at 50 % (a fixed reference of 50 % drove them to half). A new initial charge
+    is an array leaf: no recompilation."""
+    base = runs["baseline"]
+    lam0 = S.Options().lam0
+    assert base["lambda_b"] == pytest.approx(lam0, abs=1e-12)
+    for soc0 in (0.3, 0.7):
+        r = S.simulate("short_track", VP.replace(soc0=soc0), "baseline")
+        assert r["lambda_b"] == pytest.approx(lam0, abs=1e-12), soc0
+        assert r["delta_Eb_J"] == pytest.approx(base["delta_Eb_J"], abs=1.0), soc0
+        assert r["mode_switches"] == base["mode_switches"], soc0
+        assert r["fuel_J"] == pytest.approx(base["fuel_J"], rel=1e-9), soc0
+
+
 @settings(max_examples=30)
 @given(E=st.floats(0.0, 4e6), v=st.floats(0.0, 25.0), ke=st.floats(0.0, 1.0),
        kp=st.floats(0.0, 20.0))
