@@ -34,6 +34,8 @@ import numpy as np
 
 SUFFICIENT_PP = 0.5  # percentage points: "sufficient" battery = within this of the best saving
 MAX_FULL_TABLE = 2000  # rows: the full results table goes into the page up to this size
+MAX_MISSED = 50  # rows: the largest charge misses listed in the page
+CHARGE_SHARE = 0.01  # a run misses the charge beyond this share of its battery (|delta_Eb|)
 
 
 def _plt():
@@ -310,16 +312,28 @@ figcaption { font-size: 11px; color: #555; } .note { color: #555; font-size: 13p
 """
 
 
+def charge_missed(df, share: float = CHARGE_SHARE):
+    """(len(df),) bool: finished runs that end more than share of their battery (battery_MJ)
+    from where they started (their corrected fuel prices the difference at lambda_b)."""
+    size = df["battery_MJ"].to_numpy(float) * 1e6
+    return ((df["status"] == "ok").to_numpy()
+            & (np.abs(df["delta_Eb_J"].to_numpy(float)) > share * size))
+
+
 def summary_table(df, ref: str | None):
-    """Per route and strategy: rows, ok rows, mean fuel and mean/min/max saving."""
+    """Per route and strategy: rows, ok rows, rows that miss the charge (`charge_missed`), mean
+    fuel and mean/min/max saving."""
     import pandas as pd
 
     rows = []
+    missed = charge_missed(df)
     for r in _routes(df):
         for s in _strategies(df):
-            d = df[(df["route"] == r) & (df["strategy"] == s)]
+            sel = ((df["route"] == r) & (df["strategy"] == s)).to_numpy()
+            d = df[sel]
             ok = d[d["status"] == "ok"]
             row = {"route": r, "strategy": s, "rows": len(d), "ok": len(ok),
+                   "charge_missed": int(np.sum(missed & sel)),
                    "fuel_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok) else np.nan,
                    "l_per_100km_mean": np.nanmean(corrected_l_per_100km(ok)) if len(ok)
                    else np.nan}
@@ -408,6 +422,15 @@ def write_report(directory: str | Path, df=None) -> Path:
     if len(bad):
         parts.append(_table(bad[["route", "strategy", *grid_cols, "status"]],
                             "configurations that did not finish"))
+    missed = df[charge_missed(df)]
+    if len(missed):
+        off = missed.assign(delta_Eb_pct=100 * missed["delta_Eb_J"] / (1e6 * missed["battery_MJ"]))
+        off = off.reindex(off["delta_Eb_pct"].abs().sort_values(ascending=False).index)
+        parts.append(_table(
+            off[["route", "strategy", *grid_cols, "delta_Eb_pct", "lambda_b"]].head(MAX_MISSED),
+            f"configurations that end more than {100 * CHARGE_SHARE:g} % of their battery from "
+            f"where they started ({len(missed)}; the {min(len(missed), MAX_MISSED)} largest): "
+            "their corrected fuel prices the difference at lambda_b"))
     cols = ["route", "strategy", *grid_cols, "fuel_J", "fuel_corrected_J", "fuel_l_per_100km",
             "delta_Eb_J", "lambda_b", "mode_switches", "gear_switches", "trip_time_s",
             "saving_vs_conventional_pct", "saving_vs_baseline_pct", "status"]

@@ -124,6 +124,26 @@ def test_report_page_is_self_contained_with_every_figure(tmp_path, capsys):
     assert "best battery per mass" in text
 
 
+def test_charge_misses_are_counted_and_listed(tmp_path):
+    """Finished runs that end more than 1 % of their battery from their start: counted per
+    route and strategy (a loop over the rows), the largest listed in the page."""
+    df = synthetic(3)
+    want = {}
+    for row in df.itertuples():
+        off = row.status == "ok" and abs(row.delta_Eb_J) > 0.01 * row.battery_MJ * 1e6
+        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + off
+    got = rp.summary_table(df, "conventional")
+    assert {(r.route, r.strategy): r.charge_missed for r in got.itertuples()} == want
+    assert all(want[(r, "conventional")] == 0 for r in ROUTES)
+    n = sum(want.values())
+    assert 0 < n < len(df)
+    text = rp.write_report(write_dir(tmp_path, df)).read_text(encoding="utf-8")
+    caption = re.search(r"end more than 1 % of their battery from where they started \((\d+); "
+                        r"the (\d+) largest\)", text)
+    assert caption and int(caption.group(1)) == n
+    assert int(caption.group(2)) == min(n, rp.MAX_MISSED)
+
+
 def test_report_of_an_unfinished_sweep_and_without_references(tmp_path):
     drop = {(r, g, s) for r in ROUTES for g in range(9) for s in ("conventional", "baseline")}
     df = synthetic(2, drop=drop)  # multilevel only: no reference strategy
