@@ -245,6 +245,8 @@ def cmd_simulate(args) -> int:
     for key, label, unit, scale, fmt in SIMULATE_ROWS:
         v = out[key]
         text = str(v) if scale is None else format(v * scale, fmt)
+        if key == "delta_Eb_J":  # the charge-sustaining check reads it against the battery
+            unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
         rows.append((label, f"{text} {unit}".rstrip()))
     _print_table(rows)
     return 0

@@ -65,6 +65,9 @@ def test_simulate_battery_override_and_table(capsys):
     assert all(len(line) > col and line[col - 2:col] == "  " for line in lines)
     assert any(line.startswith("fuel ") and line.endswith("l/100 km") for line in lines)
     assert any(line.startswith("gear switches") for line in lines)
+    # the battery balance also in % of the battery (the conventional truck's: none)
+    assert any(line.startswith("delta E_b") and line.endswith("MJ (+0.00 % of the battery)")
+               for line in lines)
 
 
 def test_simulate_registered():
