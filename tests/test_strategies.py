@@ -114,6 +114,16 @@ def test_charge_sustenance(runs):
     assert abs(runs["baseline"]["delta_Eb_J"]) < 0.04 * size
 
 
+@pytest.mark.xfail(strict=True, reason="known gap, README 'At another starting charge': on "
+                   "the short track at 25 t the plan empties the battery on the first climb "
+                   "from 30 % and ends 26 % of it high")
+def test_multilevel_sustains_the_charge_from_another_start(runs):
+    """Charge sustaining whatever the start: the iteration from 30 % of the battery (a new
+    initial charge is an array leaf: no recompilation). Not met; strict, so that a fix shows."""
+    r = S.simulate("short_track", VP.replace(soc0=0.3), "multilevel")
+    assert abs(r["delta_Eb_J"]) < 0.01 * float(VP.E_b_max)
+
+
 def test_baseline_holds_the_charge_the_trip_starts_with(runs):
     """The A-ECMS's charge reference is the trip's start (its charge and the share of its
     kinetic energy): its feedback is neutral there (lambda_b = lam0), and a trip that starts
