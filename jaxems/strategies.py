@@ -1287,7 +1287,8 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
                    chunk: int | str | None = "auto", devices=None) -> dict[str, np.ndarray]:
     """Run one strategy for one route and a batch of vehicles in one jitted call.
 
-    vehicles: `VehicleParams` whose leaves all carry a leading batch axis B (`stack_vehicles`).
+    route: a `Route` or a path/bundled name (as `simulate`); vehicles: `VehicleParams` whose
+    leaves all carry a leading batch axis B (`stack_vehicles`).
     n_steps: static Level 3 step count (`steps_for_batch`); pass the same value for every chunk
     of a route so that chunks share one compilation. The batch is split over `devices` (None:
     all of the default backend; on a CPU `shard.use_host_devices` makes one per core) and runs
@@ -1297,6 +1298,13 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     `fuel_corrected_J` and `status`.
     """
     check_strategy(strategy)
+    if not isinstance(route, Route):
+        from .io import load_route
+
+        route = load_route(route)
+    if np.ndim(vehicles.mass) != 1:
+        raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
+                           "(stack_vehicles; for one vehicle use simulate)")
     if isinstance(chunk, str):
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")

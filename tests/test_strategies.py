@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.io import load_route
-from jaxems.params import load_vehicle, stack_vehicles
+from jaxems.params import VehicleError, load_vehicle, stack_vehicles
 
 VP = load_vehicle().replace(mass=25000.0)
 LEVEL3 = xla.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
@@ -423,6 +423,12 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
         assert out["status"][i] == "ok"
     with pytest.raises(ValueError, match="chunk"):
         S.simulate_batch(load_route("short_track"), stack_vehicles(vps), "baseline", chunk="big")
+    # a bundled route by name, as simulate takes it (the same compilation)
+    by_name = S.simulate_batch("short_track", stack_vehicles(vps), "baseline", n_steps=n,
+                               chunk=2)
+    np.testing.assert_array_equal(by_name["fuel_J"], out["fuel_J"])
+    with pytest.raises(VehicleError, match="leading batch axis"):
+        S.simulate_batch("short_track", VP, "baseline")
 
 
 def braking_route():
