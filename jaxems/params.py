@@ -252,6 +252,31 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
     return params_from_dict(doc, str(p))
 
 
+def check_vehicle(vp: VehicleParams) -> VehicleParams:
+    """`vp` where every scalar field, of each vehicle of a batch, meets its rule of the vehicle
+    file (`check_number`: mass > 0, soc0 in [0, 1], ...) and the engine's speed range is not
+    empty; else a `VehicleError` naming the field (and the vehicle's index in a batch). Files
+    are checked as they load; this checks vehicles built or changed in Python at the API."""
+    for field, _, kind in _SCHEMA.values():
+        if field.startswith("_") or kind not in _NUMBER_RULES:
+            continue
+        x = np.asarray(getattr(vp, field), dtype=np.float64)
+        flat = x.reshape(-1)
+        for v in np.unique(flat):  # a sweep's batch holds few distinct values
+            try:
+                check_number(float(v), kind, field, VehicleError)
+            except VehicleError:
+                if x.ndim == 0:
+                    raise
+                i = int(np.flatnonzero((flat == v) | (np.isnan(flat) & np.isnan(v)))[0])
+                check_number(float(v), kind, f"{field}[{i}]", VehicleError)
+    bad = np.flatnonzero(np.reshape(np.asarray(vp.we_max) <= np.asarray(vp.we_min), -1))
+    if bad.size:
+        at = "" if np.ndim(vp.we_max) == 0 and np.ndim(vp.we_min) == 0 else f"[{bad[0]}]"
+        raise VehicleError(f"we_max{at}: must exceed we_min (the engine's speed range)")
+    return vp
+
+
 def with_overrides(
     vp: VehicleParams, *, mass_kg: float | None = None, battery_MJ: float | None = None
 ) -> VehicleParams:

@@ -62,7 +62,14 @@ from .levels import battery as l2
 from .levels import level1 as l1
 from .levels import powersplit as ps
 from .levels import velocity as l3
-from .params import VehicleError, VehicleParams, load_vehicle, stack_vehicles, with_overrides
+from .params import (
+    VehicleError,
+    VehicleParams,
+    check_vehicle,
+    load_vehicle,
+    stack_vehicles,
+    with_overrides,
+)
 from .route import Route
 from .xla import jit
 
@@ -1305,6 +1312,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     if np.ndim(vehicles.mass) != 1:
         raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
                            "(stack_vehicles; for one vehicle use simulate)")
+    check_vehicle(vehicles)
     if isinstance(chunk, str):
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
@@ -1373,7 +1381,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
         rname = name or route_name(route)
         route = load_route(route)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
-    vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ)
+    vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ))
     if np.ndim(vp.mass):
         raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
     params = sw.checked_params(switching, np.asarray(vp.mass).dtype)

@@ -13,6 +13,7 @@ from jaxems.params import (
     VEHICLE_DIR,
     VehicleError,
     VehicleParams,
+    check_vehicle,
     load_vehicle,
     params_from_dict,
     stack_vehicles,
@@ -198,3 +199,26 @@ def test_stack_vehicles():
     np.testing.assert_allclose(batch.mass, [20000, 30000, 40000])
     with pytest.raises(VehicleError, match="empty"):
         stack_vehicles([])
+
+
+@pytest.mark.parametrize(
+    "field,value,why",
+    [
+        ("mass", -1.0, "must be > 0"),
+        ("soc0", 1.5, r"must be in \[0, 1\]"),
+        ("eta_e", 1.2, r"must be in \(0, 1\]"),
+        ("c_r", -0.001, "must be >= 0"),
+        ("E_b_max", float("nan"), "expected a finite number"),
+        ("we_max", 10.0, "must exceed we_min"),
+    ],
+)
+def test_check_vehicle_names_the_field_and_the_vehicle(field, value, why):
+    """Vehicles built in Python are held to the file's rules at the API: the field, and in a
+    batch the index of the first vehicle that breaks it."""
+    vp = load_vehicle()
+    assert check_vehicle(vp) is vp and check_vehicle(vp.conventional()) is not None
+    with pytest.raises(VehicleError, match=rf"^{field}: {why}"):
+        check_vehicle(vp.replace(**{field: value}))
+    batch = stack_vehicles([vp, vp.replace(mass=30000.0), vp.replace(**{field: value}), vp])
+    with pytest.raises(VehicleError, match=rf"^{field}\[2\]: {why}"):
+        check_vehicle(batch)
