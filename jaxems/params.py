@@ -256,11 +256,15 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
     """`vp` where every scalar field, of each vehicle of a batch, meets its rule of the vehicle
     file (`check_number`: mass > 0, soc0 in [0, 1], ...) and the engine's speed range is not
     empty; else a `VehicleError` naming the field (and the vehicle's index in a batch). Files
-    are checked as they load; this checks vehicles built or changed in Python at the API."""
+    are checked as they load; this checks vehicles built or changed in Python at the API.
+    Traced leaves (a host API called under `jit`) are left to the caller's concrete call."""
     for field, _, kind in _SCHEMA.values():
         if field.startswith("_") or kind not in _NUMBER_RULES:
             continue
-        x = np.asarray(getattr(vp, field), dtype=np.float64)
+        try:
+            x = np.asarray(getattr(vp, field), dtype=np.float64)
+        except TypeError:  # a tracer
+            continue
         flat = x.reshape(-1)
         for v in np.unique(flat):  # a sweep's batch holds few distinct values
             try:
@@ -270,7 +274,10 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
                     raise
                 i = int(np.flatnonzero((flat == v) | (np.isnan(flat) & np.isnan(v)))[0])
                 check_number(float(v), kind, f"{field}[{i}]", VehicleError)
-    bad = np.flatnonzero(np.reshape(np.asarray(vp.we_max) <= np.asarray(vp.we_min), -1))
+    try:
+        bad = np.flatnonzero(np.reshape(np.asarray(vp.we_max) <= np.asarray(vp.we_min), -1))
+    except TypeError:  # a tracer
+        return vp
     if bad.size:
         at = "" if np.ndim(vp.we_max) == 0 and np.ndim(vp.we_min) == 0 else f"[{bad[0]}]"
         raise VehicleError(f"we_max{at}: must exceed we_min (the engine's speed range)")

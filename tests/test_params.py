@@ -222,3 +222,31 @@ def test_check_vehicle_names_the_field_and_the_vehicle(field, value, why):
     batch = stack_vehicles([vp, vp.replace(mass=30000.0), vp.replace(**{field: value}), vp])
     with pytest.raises(VehicleError, match=rf"^{field}\[2\]: {why}"):
         check_vehicle(batch)
+
+
+def test_host_apis_check_the_vehicle_before_compiling():
+    """Every host entry point that takes a vehicle names its bad field (here before any
+    compilation: the check comes first)."""
+    import jaxems
+    from jaxems.levels import battery, level1
+    from jaxems.levels.velocity import predict_batch
+
+    route = jaxems.load_route("short_track")
+    vp = load_vehicle()
+    bad = vp.replace(mass=-1.0)
+    z, v = np.zeros(8), np.full(8, 5.0)
+    calls = {
+        "simulate": lambda: jaxems.simulate(route, bad, "baseline"),
+        "simulate_batch": lambda: jaxems.simulate_batch(route, stack_vehicles([vp, bad]),
+                                                        "baseline"),
+        "predict_velocity": lambda: jaxems.predict_velocity(route, bad),
+        "predict_batch": lambda: predict_batch([route, route], [vp, bad]),
+        "solve_costate": lambda: battery.solve_costate(bad, z, v, np.full(8, 100.0)),
+        "costate_batch": lambda: battery.costate_batch(
+            stack_vehicles([vp, bad]), np.zeros((2, 8)), np.full((2, 8), 5.0),
+            np.full((2, 8), 100.0)),
+        "level1_full": lambda: level1.level1_full(bad, z, v, z, -2.0, 1.0),
+    }
+    for name, call in calls.items():
+        with pytest.raises(VehicleError, match=r"^mass(\[1\])?: must be > 0"):
+            call()

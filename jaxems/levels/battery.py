@@ -87,7 +87,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import powertrain as pt
-from ..params import VehicleParams
+from ..params import VehicleParams, check_vehicle
 from ..xla import jit
 from .powersplit import mode_gear_split, modes_at_gear
 
@@ -662,6 +662,7 @@ def _validate_route(P_d, v, w, mask, dt, batch: bool):
 
 
 def _validate_levels(vp, E_b0, E_b_end, E_min, E_max, lam_bracket, n_iter, max_pieces):
+    check_vehicle(vp)
     lo, hi = (float(x) for x in lam_bracket)
     if not lo < hi:
         raise ValueError(f"lam_bracket: expected (low, high) with low < high, got {lam_bracket}")

@@ -47,7 +47,7 @@ import numpy as np
 
 from .. import dp
 from .. import switching as sw
-from ..params import VehicleParams
+from ..params import VehicleParams, check_vehicle
 from ..xla import jit
 from .powersplit import (
     ENGINE_CONNECTED,
@@ -455,6 +455,7 @@ _level1_full_jit = jit(_level1_full)
 
 
 def _check_inputs(vp, P_d, v, grade, mask):
+    check_vehicle(vp)
     gr = vp.gear_ratio
     if not isinstance(gr, jax.core.Tracer):
         g = np.asarray(gr)
