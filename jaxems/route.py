@@ -137,6 +137,38 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
         raise RouteError(f"{source}: no row with a non-zero speed; the route never moves")
 
 
+def check_route(route: Route) -> Route:
+    """`route` where its arrays are what a route file gives (for routes built or changed in
+    Python; files are checked as they load): ds and length finite and > 0, and on every node
+    the mask keeps a finite gradient within +-GRADE_MAX_PCT, a speed limit in (0,
+    SPEED_MAX_KMH] and a standstill time >= 0; else a `RouteError` naming the field and the
+    node (in a batch, [route, node]). Traced leaves (under `jit`) are left to a concrete call."""
+    try:
+        leaves = {k: np.asarray(getattr(route, k), dtype=np.float64) for k in Route._fields}
+    except TypeError:  # a tracer
+        return route
+    keep = leaves["mask"] != 0
+    rules = {
+        "ds": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m", True),
+        "length": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m",
+                   True),
+        "grade": (lambda x: np.isfinite(x) & (np.abs(x) <= GRADE_MAX_PCT / 100),
+                  f"must be a finite rise/run within +-{GRADE_MAX_PCT / 100:g}", keep),
+        "vmax": (lambda x: np.isfinite(x) & (x > 0) & (x <= SPEED_MAX_KMH / 3.6),
+                 f"must be a speed limit in (0, {SPEED_MAX_KMH / 3.6:.4g}] m/s", keep),
+        "stop": (lambda x: np.isfinite(x) & (x >= 0), "must be a standstill time >= 0 s", keep),
+    }
+    for field, (ok, why, where) in rules.items():
+        x = leaves[field]
+        with np.errstate(invalid="ignore"):
+            bad = np.broadcast_to(where, x.shape) & ~ok(x)
+        if np.any(bad):
+            at = np.argwhere(bad)[0]
+            idx = f"[{', '.join(str(int(i)) for i in at)}]" if at.size else ""
+            raise RouteError(f"route {field}{idx}: {why} (got {float(x[tuple(at)])!r})")
+    return route
+
+
 def route_from_rows(
     rows: Sequence[Row],
     ds: float = DS_DEFAULT,

@@ -70,7 +70,7 @@ from .params import (
     stack_vehicles,
     with_overrides,
 )
-from .route import Route
+from .route import Route, check_route
 from .xla import jit
 
 STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound",
@@ -1309,6 +1309,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
         from .io import load_route
 
         route = load_route(route)
+    check_route(route)
     if np.ndim(vehicles.mass) != 1:
         raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
                            "(stack_vehicles; for one vehicle use simulate)")
@@ -1377,6 +1378,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     _check_options(opts)
     if isinstance(route, Route):
         rname = name or "route"
+        check_route(route)
     else:
         rname = name or route_name(route)
         route = load_route(route)

@@ -10,6 +10,7 @@ from jaxems.route import (
     Route,
     RouteError,
     Row,
+    check_route,
     check_rows,
     elevation,
     n_nodes,
@@ -207,3 +208,42 @@ def test_elevation_sin_of_slope():
     n = n_nodes(r)
     assert h[10] == pytest.approx(100 * np.sin(np.arctan(0.1)))
     assert h[n - 1] == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize(
+    "field,node,value,why",
+    [
+        ("grade", 3, np.nan, "finite rise/run"),
+        ("grade", 3, 0.45, "within"),
+        ("vmax", 0, -7.0, "speed limit"),
+        ("vmax", 5, np.inf, "speed limit"),
+        ("stop", 2, -1.0, "standstill time"),
+        ("ds", None, 0.0, "finite distance"),
+        ("length", None, np.nan, "finite distance"),
+    ],
+)
+def test_check_route_names_the_field_and_the_node(field, node, value, why):
+    """Routes built or changed in Python are held to a route file's rules at the API; the
+    padding beyond the mask is not checked; in a batch the index is [route, node]."""
+    import jaxems
+
+    r = jaxems.load_route("short_track")
+    assert check_route(r) is r
+    x = np.array(getattr(r, field), dtype=float)
+    if node is None:
+        x = np.float64(value)
+        at = ""
+    else:
+        x[node] = value
+        at = rf"\[{node}\]"
+    bad = r._replace(**{field: x})
+    with pytest.raises(RouteError, match=rf"^route {field}{at}: .*{why}"):
+        check_route(bad)
+    if node is not None:
+        with pytest.raises(RouteError, match=rf"^route {field}\[1, {node}\]: .*{why}"):
+            check_route(pad_routes([r, bad]))
+        with pytest.raises(RouteError, match=rf"^route {field}"):  # the API checks first
+            jaxems.predict_velocity(bad, jaxems.load_vehicle())
+    padded = np.array(r.grade, dtype=float)
+    padded[~np.asarray(r.mask)] = np.nan  # beyond the route: not read, not checked
+    check_route(r._replace(grade=padded))
