@@ -92,14 +92,13 @@ class Options(NamedTuple):
     baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
     battery already; soc_ref: the charge it holds, as a fraction of E_b_max with that share
     counted, None: the trip's start, `ecms_params`; dwell: least steps between its switches);
-    dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level 1
-    splits are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away
-    from E_b(t0) in
-    dp-bound's terminal cost, beyond Level 2's costate (`bound_dp`); dp_attempts: dp-bound's DP
-    and plant runs, each from the last one's plant drift and engine speeds; plant_extra: plant
-    steps beyond Level 3's (slack for switching delays, as a fraction; at least 256 steps);
-    sustain: make each multilevel Level 1 plan charge sustaining on its own model
-    (`sustaining_level1`); guard_sides: Level 1 follows Level 2's I2b sides at guards
+    dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level 1 splits
+    are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from
+    E_b(t0) in dp-bound's terminal cost, beyond Level 2's costate (`bound_dp`); dp_attempts:
+    dp-bound's DP and plant runs, each from the last one's plant drift and engine speeds;
+    plant_extra: plant steps beyond Level 3's (slack for switching delays, as a fraction; at
+    least 256 steps); sustain: make each multilevel Level 1 plan charge sustaining on its own
+    model (`sustaining_level1`); guard_sides: Level 1 follows Level 2's I2b sides at guards
     (`guard_lambda`); l2_pieces: the most pieces of Level 2's piecewise-constant costate (I1);
     tau_E: time constant (s) of the plant's battery-power feedback on the deviation from a
     plan's battery energy; same_open_time: every vehicle has dt_M == dt_G, so Level 1 takes the
