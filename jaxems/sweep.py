@@ -823,6 +823,7 @@ class SweepSummary:
     computed_configs: int
     wall_s: float
     status_counts: dict[str, int]
+    charge_missed: int  # finished runs more than 1 % of their battery off (`report.charge_missed`)
     chunk_stats: list[dict]  # per computed chunk: id, strategy, route, compiles, wall_s
     results: Path | None
     report: Path | None
@@ -838,7 +839,8 @@ class SweepSummary:
             f"  computed {self.computed_configs} configurations ({self.computed_chunks} chunks) "
             f"in {self.wall_s:.1f} s ({rate:.2f} configurations/s); "
             f"{self.skipped_chunks} chunks already done",
-            f"  status: {st or 'no rows'}",
+            f"  status: {st or 'no rows'}; {self.charge_missed} end more than 1 % of their "
+            f"battery from their start (listed in the report)",
         ]
         if self.results:
             lines.append(f"  results: {self.results}")
@@ -1000,16 +1002,15 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
     df = assemble(out, cfg.canonical())
     res_path = out / RESULTS_FILE
     _atomic_write_table(res_path, df)
-    report_path = None
-    if report:
-        from .report import write_report
+    from .report import charge_missed, write_report
 
-        report_path = write_report(out, df=df)
+    report_path = write_report(out, df=df) if report else None
     counts = df["status"].value_counts().to_dict()
     return SweepSummary(
         out=out, n_configs=n_configs, n_chunks=len(chunks), computed_chunks=len(todo),
         skipped_chunks=skipped, computed_configs=sum(c.n_real for c in todo), wall_s=wall,
-        status_counts={str(k): int(v) for k, v in counts.items()}, chunk_stats=stats,
+        status_counts={str(k): int(v) for k, v in counts.items()},
+        charge_missed=int(charge_missed(df).sum()), chunk_stats=stats,
         results=res_path, report=report_path, backend=backend,
     )
 
