@@ -1,4 +1,5 @@
-"""experiments/table7.py, table8.py and traces.py: JSON structure, row arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py and charge_grid.py: JSON structure, row
+arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -142,3 +143,27 @@ def test_eco_velocity_bad_input_fails_before_running(capsys):
     assert "no such route file" in err and "eco: short_track" not in err
     assert eco.main(["--mass", "-1"]) == 1
     assert "mass_kg" in capsys.readouterr().err
+
+
+def test_charge_grid_json_and_the_baselines_balance(capsys):
+    """charge_grid: one row per (strategy, mass, soc0) with delta E_b in % of the battery; the
+    A-ECMS, whose reference is the trip's start, ends the same energy from it at 30 and 50 %
+    (the 25 t baseline shares its compilation with the tests above)."""
+    grid = _script("charge_grid")
+    code = grid.main(["--strategies", "baseline", "--socs", "0.3,0.5", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "charge_grid: baseline" in err
+    d = json.loads(out)
+    rows = d["rows"]
+    assert [(r["strategy"], r["soc0"]) for r in rows] == [("baseline", 0.3), ("baseline", 0.5)]
+    size = float(load_vehicle().E_b_max)
+    for r in rows:
+        assert r["mass_kg"] == 25000.0 and r["status"] == "ok"
+        assert r["delta_Eb_pct"] == pytest.approx(100 * r["delta_Eb_J"] / size)
+        assert r["sustained"] == (abs(r["delta_Eb_pct"]) <= 1.0)
+    assert rows[0]["delta_Eb_J"] == pytest.approx(rows[1]["delta_Eb_J"], abs=1.0)
+    assert "within 1 %: " in grid.format_table(d)
+    assert grid.main(["--socs", "half"]) == 1
+    assert "--socs: expected comma-separated numbers" in capsys.readouterr().err
+    assert grid.main(["--socs", "1.5", "--strategies", "baseline"]) == 1
+    assert "soc0: must be in [0, 1]" in capsys.readouterr().err
