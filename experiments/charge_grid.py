@@ -17,7 +17,6 @@ each strategy compiles once. Float64.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -26,6 +25,7 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
+from jaxems.cli import print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
@@ -110,16 +110,13 @@ def main(argv=None) -> int:
                     help="comma-separated strategies")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    try:
-        masses = _floats(args.masses, "masses")
-        socs = _floats(args.socs, "socs")
+
+    def compute():
         strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
-        out = run_grid(args.route, masses, socs, strategies, args.vehicle)
-    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
-        print(f"charge_grid: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 1
-    print(json.dumps(out) if args.json else format_table(out))
-    return 0
+        return run_grid(args.route, _floats(args.masses, "masses"), _floats(args.socs, "socs"),
+                        strategies, args.vehicle)
+
+    return print_result("charge_grid", compute, args.json, format_table)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ route shows both speed profiles over distance above the road's elevation.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
+from jaxems.cli import print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import simulate  # noqa: E402
@@ -140,14 +140,10 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/eco", help="folder of the plots (out/eco)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    try:
-        routes = [x.strip() for x in args.routes.split(",") if x.strip()]
-        out = run_eco(routes, args.mass, args.dt, args.vehicle, args.out)
-    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
-        print(f"eco_velocity: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 1
-    print(json.dumps(out) if args.json else format_table(out))
-    return 0
+    routes = [x.strip() for x in args.routes.split(",") if x.strip()]
+    return print_result("eco_velocity", lambda: run_eco(routes, args.mass, args.dt,
+                                                        args.vehicle, args.out),
+                        args.json, format_table)
 
 
 if __name__ == "__main__":

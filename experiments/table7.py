@@ -18,7 +18,6 @@ beside ours; its truck model is not ours, so absolute energies differ.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import re
 import sys
@@ -31,6 +30,7 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
+from jaxems.cli import print_result  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
 
@@ -159,13 +159,9 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
     strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
-    try:
-        out = run_table(args.route, args.mass, strategies, args.dt, args.n_iter, args.vehicle)
-    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
-        print(f"table7: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 1
-    print(json.dumps(out) if args.json else format_table(out))
-    return 0
+    return print_result("table7", lambda: run_table(args.route, args.mass, strategies, args.dt,
+                                                    args.n_iter, args.vehicle),
+                        args.json, format_table)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,6 @@ Compilation takes about a minute per strategy and route; a LongHaul run seconds 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ from jax import config
 config.update("jax_enable_x64", True)
 
 from jaxems import powertrain as pt  # noqa: E402
+from jaxems.cli import print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import PAPER_STRATEGIES, STRATEGIES, simulate  # noqa: E402
@@ -117,14 +117,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    try:
-        out = run_table(_list(args.routes), _list(args.strategies), args.mass, args.dt,
-                        args.vehicle)
-    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
-        print(f"table8: error: {' '.join(str(e).split())}", file=sys.stderr)
-        return 1
-    print(json.dumps(out) if args.json else format_table(out))
-    return 0
+    return print_result("table8", lambda: run_table(_list(args.routes), _list(args.strategies),
+                                                    args.mass, args.dt, args.vehicle),
+                        args.json, format_table)
 
 
 if __name__ == "__main__":

@@ -317,6 +317,19 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def print_result(name: str, compute, as_json: bool, fmt) -> int:
+    """The experiment scripts' ending: out = compute(), printed as one JSON object (as_json)
+    or as fmt(out); a bad input (ValueError, OSError: route, vehicle and option errors) is one
+    line `NAME: error: ...` on stderr and exit status 1."""
+    try:
+        out = compute()
+    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
+        print(f"{name}: error: {' '.join(str(e).split())}", file=sys.stderr)
+        return EXIT_ERROR
+    print(json.dumps(out) if as_json else fmt(out))
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 1 bad input, 2 bad usage)."""
     args = build_parser().parse_args(argv)
