@@ -28,10 +28,11 @@ config.update("jax_enable_x64", True)
 from jaxems.cli import print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
+from jaxems.report import CHARGE_SHARE  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
 DEFAULT_STRATEGIES = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
-TARGET_PCT = 1.0  # the end-to-end check: |delta E_b| within 1 % of the battery
+TARGET_PCT = 100 * CHARGE_SHARE  # the end-to-end check: |delta E_b| within 1 % of the battery
 
 
 def _num(x):

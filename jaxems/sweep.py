@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 
 from .params import _SCHEMA, VehicleError, VehicleParams, check_number, load_vehicle
+from .report import CHARGE_SHARE, charge_missed, write_report
 from .route import Route, RouteError
 
 FORMAT_VERSION = 1
@@ -839,8 +840,9 @@ class SweepSummary:
             f"  computed {self.computed_configs} configurations ({self.computed_chunks} chunks) "
             f"in {self.wall_s:.1f} s ({rate:.2f} configurations/s); "
             f"{self.skipped_chunks} chunks already done",
-            f"  status: {st or 'no rows'}; {self.charge_missed} end more than 1 % of their "
-            f"battery from their start (listed in the report)",
+            f"  status: {st or 'no rows'}; {self.charge_missed} end more than "
+            f"{100 * CHARGE_SHARE:g} % of their battery from their start"
+            + (" (listed in the report)" if self.report else ""),
         ]
         if self.results:
             lines.append(f"  results: {self.results}")
@@ -1002,8 +1004,6 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
     df = assemble(out, cfg.canonical())
     res_path = out / RESULTS_FILE
     _atomic_write_table(res_path, df)
-    from .report import charge_missed, write_report
-
     report_path = write_report(out, df=df) if report else None
     counts = df["status"].value_counts().to_dict()
     return SweepSummary(
