@@ -3,7 +3,7 @@
     jaxems route ROUTE [--json]                          facts of a route file
     jaxems predict ROUTE [--vehicle NAME|PATH] [--mass KG] [--json] [--csv FILE]
                                                          Level 3 speed and power prediction
-    jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X]
+    jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X] [--initial-soc F]
                     [--strategy NAME] [--dt S] [--n-iter N] [--json]
                                                          one strategy on the closed-loop plant
 
@@ -41,7 +41,8 @@ def _load_vehicle(args):
     from .params import load_vehicle, with_overrides
 
     vp = load_vehicle(args.vehicle)
-    return with_overrides(vp, mass_kg=args.mass, battery_MJ=getattr(args, "battery_MJ", None))
+    return with_overrides(vp, mass_kg=args.mass, battery_MJ=getattr(args, "battery_MJ", None),
+                          initial_soc=getattr(args, "initial_soc", None))
 
 
 def _load(args):
@@ -235,7 +236,8 @@ def cmd_simulate(args) -> int:
     res = simulate(str(path), vp, args.strategy, dt=args.dt, name=route_name(path), **options)
     out = res.as_dict()
     out |= {"vehicle": str(args.vehicle), "mass_kg": float(vp.mass),
-            "battery_MJ": float(vp.E_b_max) / 1e6, "dt_s": float(args.dt)}
+            "battery_MJ": float(vp.E_b_max) / 1e6, "initial_soc": float(vp.soc0),
+            "dt_s": float(args.dt)}
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0
@@ -262,6 +264,9 @@ def register_simulate(sub) -> None:
     _common_vehicle(p)
     p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
                    help="usable battery energy in MJ (overrides the vehicle file)")
+    p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
+                   help="starting charge, a fraction of the battery in [0, 1] (overrides the "
+                        "vehicle file)")
     p.add_argument("--strategy", default="multilevel", metavar="NAME",
                    help="conventional, baseline, multilevel (default), multilevel-mpc, "
                         "dp-bound, multilevel-eco")

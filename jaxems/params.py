@@ -285,13 +285,17 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
 
 
 def with_overrides(
-    vp: VehicleParams, *, mass_kg: float | None = None, battery_MJ: float | None = None
+    vp: VehicleParams, *, mass_kg: float | None = None, battery_MJ: float | None = None,
+    initial_soc: float | None = None,
 ) -> VehicleParams:
-    """The user-facing overrides of the CLI and sweeps, validated (mass > 0, battery > 0)."""
+    """The user-facing overrides of the CLI and sweeps, validated (mass > 0, battery > 0, the
+    starting charge in [0, 1] of the battery)."""
     if mass_kg is not None:
         vp = vp.replace(mass=check_number(mass_kg, "pos", "mass_kg", VehicleError))
     if battery_MJ is not None:
         vp = vp.replace(E_b_max=check_number(battery_MJ, "pos", "battery_MJ", VehicleError) * 1e6)
+    if initial_soc is not None:
+        vp = vp.replace(soc0=check_number(initial_soc, "unit", "initial_soc", VehicleError))
     return vp
 
 

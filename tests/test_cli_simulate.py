@@ -57,6 +57,12 @@ def test_simulate_battery_override_and_table(capsys):
     assert code == 0
     d = json.loads(out)
     assert d["battery_MJ"] == 8.0 and d["Eb_min_J"] == pytest.approx(4.0e6)  # half of 8 MJ
+    assert d["initial_soc"] == 0.5  # the vehicle file's
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "conventional",
+                       "--battery-MJ", "8", "--initial-soc", "0.3", "--json")
+    d = json.loads(out)
+    assert code == 0 and d["initial_soc"] == 0.3
+    assert d["Eb_min_J"] == d["Eb_max_J"] == pytest.approx(0.3 * 8e6)  # where it started
     code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "conventional")
     assert code == 0
     lines = out.splitlines()
@@ -81,6 +87,7 @@ def test_simulate_registered():
         (["--strategy", "greedy"], "strategy: unknown 'greedy'"),
         (["--mass", "-5"], "mass_kg: must be > 0"),
         (["--battery-MJ", "0"], "battery_MJ: must be > 0"),
+        (["--initial-soc", "1.5"], "initial_soc: must be in [0, 1]"),
         (["--n-iter", "0"], "--n-iter: must be a whole number >= 1"),
     ],
 )
