@@ -1356,14 +1356,16 @@ class Result:
 
 def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
              dt: float = 1.0, mass_kg: float | None = None, battery_MJ: float | None = None,
-             options: Options | None = None, switching: sw.SwitchCostParams | None = None,
-             name: str | None = None, **option_kw) -> Result:
+             initial_soc: float | None = None, options: Options | None = None,
+             switching: sw.SwitchCostParams | None = None, name: str | None = None,
+             **option_kw) -> Result:
     """Simulate one strategy on one route with one vehicle; returns a `Result`.
 
     route: a `Route` or a path/bundled name; vehicle: `VehicleParams` or a name/path;
-    mass_kg, battery_MJ: overrides (validated: positive); options: `Options` (or its fields as
-    keywords, e.g. n_iter=3, h1=5); switching: `SwitchCostParams` (None: the defaults;
-    `switching.checked_params`). Bad options raise ValueError naming the option.
+    mass_kg, battery_MJ, initial_soc: overrides (validated: positive, positive, in [0, 1]);
+    options: `Options` (or its fields as keywords, e.g. n_iter=3, h1=5); switching:
+    `SwitchCostParams` (None: the defaults; `switching.checked_params`). Bad options raise
+    ValueError naming the option.
     """
     from .io import load_route, route_name
 
@@ -1382,7 +1384,8 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
         rname = name or route_name(route)
         route = load_route(route)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
-    vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ))
+    vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
+                                      initial_soc=initial_soc))
     if np.ndim(vp.mass):
         raise VehicleError("simulate: one vehicle expected (use simulate_batch for a batch)")
     params = sw.checked_params(switching, np.asarray(vp.mass).dtype)

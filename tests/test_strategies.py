@@ -134,11 +134,14 @@ def test_baseline_holds_the_charge_the_trip_starts_with(runs):
     lam0 = S.Options().lam0
     assert base["lambda_b"] == pytest.approx(lam0, abs=1e-12)
     for soc0 in (0.3, 0.7):
-        r = S.simulate("short_track", VP.replace(soc0=soc0), "baseline")
+        r = S.simulate("short_track", VP, "baseline", initial_soc=soc0)  # the override
+        assert float(r.trace.E_b[0]) == pytest.approx(soc0 * float(VP.E_b_max))
         assert r["lambda_b"] == pytest.approx(lam0, abs=1e-12), soc0
         assert r["delta_Eb_J"] == pytest.approx(base["delta_Eb_J"], abs=1.0), soc0
         assert r["mode_switches"] == base["mode_switches"], soc0
         assert r["fuel_J"] == pytest.approx(base["fuel_J"], rel=1e-9), soc0
+    with pytest.raises(VehicleError, match=r"initial_soc: must be in \[0, 1\]"):
+        S.simulate("short_track", VP, "baseline", initial_soc=1.2)
 
 
 @settings(max_examples=30)
