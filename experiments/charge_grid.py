@@ -28,7 +28,7 @@ config.update("jax_enable_x64", True)
 from jaxems.cli import print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
-from jaxems.report import CHARGE_SHARE  # noqa: E402
+from jaxems.report import CHARGE_SHARE, off_charge  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
 DEFAULT_STRATEGIES = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
@@ -72,7 +72,7 @@ def run_grid(route: str = "short_track", masses=(25000.0,), socs=(0.1, 0.3, 0.5,
                 "delta_Eb_J": _num(r["delta_Eb_J"]),
                 "delta_Eb_pct": _num(100 * r["delta_Eb_J"] / size),
                 "lambda_b": _num(r["lambda_b"]), "status": str(r["status"]),
-                "sustained": bool(abs(r["delta_Eb_J"]) <= TARGET_PCT / 100 * size),
+                "sustained": not off_charge(r["delta_Eb_J"], size),
             })
             print(f"charge_grid: {strategy:15s} {m:8.0f} kg soc0 {soc:.2f} "
                   f"{rows[-1]['delta_Eb_pct']:+7.2f} % ({time.perf_counter() - t:.1f} s)",

@@ -312,12 +312,18 @@ figcaption { font-size: 11px; color: #555; } .note { color: #555; font-size: 13p
 """
 
 
+def off_charge(delta_Eb_J, E_b_max_J, share: float = CHARGE_SHARE):
+    """Whether a run's battery balance (J, end minus start; arrays or scalars) is more than
+    share of its battery (J) from zero: the charge-sustaining check."""
+    return np.abs(np.asarray(delta_Eb_J, float)) > share * np.asarray(E_b_max_J, float)
+
+
 def charge_missed(df, share: float = CHARGE_SHARE):
     """(len(df),) bool: finished runs that end more than share of their battery (battery_MJ)
     from where they started (their corrected fuel prices the difference at lambda_b)."""
-    size = df["battery_MJ"].to_numpy(float) * 1e6
     return ((df["status"] == "ok").to_numpy()
-            & (np.abs(df["delta_Eb_J"].to_numpy(float)) > share * size))
+            & off_charge(df["delta_Eb_J"].to_numpy(float),
+                         df["battery_MJ"].to_numpy(float) * 1e6, share))
 
 
 def summary_table(df, ref: str | None):
