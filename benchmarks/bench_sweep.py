@@ -7,6 +7,7 @@
                                       [--scaling-batch 64] [--scaling-lengths 1,2,4]
                                       [--scaling-batches 64,128,...,4096]]
                                      [--emitters library|elemental|fusion] [--in-process]
+                                     [--option NAME=VALUE ...]
 
 Each measurement runs in its own Python subprocess (so that peak_rss_MB is that run's own
 resident high-water mark and the device count can differ between runs). In it `batch` vehicle
@@ -37,6 +38,11 @@ Both paths compile the batch program as `simulate_batch` does (`strategies.BATCH
 elemental CPU emitters for every strategy but the conventional truck, the MPC and the
 eco-driving; see `jaxems.xla`). `--emitters elemental` or `fusion` compiles every strategy's
 batch with one of them, to compare.
+
+`--option NAME=VALUE` (repeatable) sets a field of `strategies.Options` for every strategy
+measured, checked as a sweep file's options table is (`sweep.strategy_options`); VALUE is
+a TOML value (`--option sustain=false`, `--option n_iter=3`). The JSON lists them under
+"options".
 
 With --json one object on stdout:
 
@@ -174,12 +180,13 @@ def measure(spec: dict) -> dict:
     if spec.get("emitters", "library") != "library":  # one XLA CPU code generator for all
         st.BATCH_ELEMENTAL[name] = spec["emitters"] == "elemental"
     elemental = getattr(st, "BATCH_ELEMENTAL", {}).get(name)  # None: code before xla.jit
-    opts = st.Options()
+    opts = st.Options()._replace(**spec.get("options", {}))
     if hasattr(st, "resolve_options"):  # static choices made from the vehicles, as
         opts = st.resolve_options(opts, vps)  # simulate_batch makes them
     if spec["mode"] == "plain":
         def call():  # the whole batch in one vmap on one device
-            return st.simulate_batch(route, vps, name, n_steps=n_steps, chunk=None, devices=1)
+            return st.simulate_batch(route, vps, name, n_steps=n_steps, chunk=None, devices=1,
+                                     options=opts)
     else:
         kern = st._kernel(name, 1.0, n_steps, opts)
         params = sw.SwitchCostParams()
@@ -330,6 +337,29 @@ def scaling(args, base: dict) -> dict:
     return out
 
 
+def parse_options(pairs: list[str]) -> dict:
+    """{name: value} from NAME=VALUE strings (VALUE a TOML value), checked as a sweep file's
+    options are; SystemExit naming the bad one."""
+    import tomllib
+
+    from jaxems.sweep import SweepError, strategy_options
+
+    out = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        try:
+            if not sep or not name.strip():
+                raise ValueError("expected NAME=VALUE")
+            out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
+        except (ValueError, tomllib.TOMLDecodeError) as e:
+            raise SystemExit(f"bench_sweep: --option {pair!r}: {e}") from None
+    try:
+        strategy_options(out, "--option")
+    except SweepError as e:
+        raise SystemExit(f"bench_sweep: {e}") from None
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--route", default="LongHaul")
@@ -359,6 +389,8 @@ def main(argv=None) -> int:
                     "per strategy (strategies.BATCH_ELEMENTAL) or one for every strategy")
     ap.add_argument("--in-process", action="store_true",
                     help="no subprocesses (peak RSS then accumulates over runs)")
+    ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                    help="a strategies.Options field for every strategy (repeatable)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -372,10 +404,12 @@ def main(argv=None) -> int:
         ap.error("--devices, --chunk and --batch must be >= 1")
     if args.in_process and len(set(args.devices_list)) > 1:
         ap.error("--in-process measures one device count (the backend starts once)")
+    options = parse_options(args.option)
     base = {"route": args.route, "tile": 1, "batch": args.batch, "chunk": args.chunk,
-            "precision": args.precision, "repeats": args.repeats, "emitters": args.emitters}
+            "precision": args.precision, "repeats": args.repeats, "emitters": args.emitters,
+            "options": options}
     out = {"route": args.route, "batch": args.batch, "precision": args.precision,
-           "devices": args.devices_list, "chunk": args.chunk,
+           "devices": args.devices_list, "chunk": args.chunk, "options": options,
            "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(),
                        "loadavg_start": list(os.getloadavg())},
            "code": code_version(),
