@@ -17,9 +17,9 @@ each strategy compiles once. Float64.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
+from pathlib import Path
 
 from jax import config
 
@@ -31,13 +31,11 @@ from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E
 from jaxems.report import CHARGE_SHARE, off_charge  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table7 import _num  # noqa: E402  (a JSON number, as Table 7 writes it)
+
 DEFAULT_STRATEGIES = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 TARGET_PCT = 100 * CHARGE_SHARE  # the end-to-end check: |delta E_b| within 1 % of the battery
-
-
-def _num(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 def _floats(text: str, name: str) -> list[float]:
