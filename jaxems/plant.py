@@ -289,7 +289,7 @@ def block_search(a, a_c, v, side: str):
     that holds the answer. The plant searches its route and reference at every step; a binary
     search over the whole array touches log2(N) places spread over it, and on long routes, for
     batches under vmap, the plant's step then took up to twice as long per step as on a route
-    a quarter as long (measured in README "Fleet throughput and scaling").
+    a quarter as long (measured in docs/performance_history.md, "The plant's searches by blocks").
     With q block starts before v (side's sense), every value of the blocks before block q - 1
     is before v and every value from block q on is not, so the answer is in block q - 1; its
     window is clamped into the array (`dynamic_slice`), and the values it then also covers
