@@ -224,6 +224,7 @@ def cmd_simulate(args) -> int:
     costate, switch counts and the largest shortfall from the reference speed.
     """
     from .io import resolve_route, route_name
+    from .report import CHARGE_SHARE, off_charge
     from .strategies import check_strategy, simulate
 
     check_strategy(args.strategy)  # before anything is loaded or compiled
@@ -238,6 +239,9 @@ def cmd_simulate(args) -> int:
     out |= {"vehicle": str(args.vehicle), "mass_kg": float(vp.mass),
             "battery_MJ": float(vp.E_b_max) / 1e6, "initial_soc": float(vp.soc0),
             "dt_s": float(args.dt)}
+    # the charge-sustaining check, as sweep reports apply it (`report.off_charge`)
+    out["charge_missed"] = bool(out["status"] == "ok"
+                                and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0
@@ -249,6 +253,8 @@ def cmd_simulate(args) -> int:
         text = str(v) if scale is None else format(v * scale, fmt)
         if key == "delta_Eb_J":  # the charge-sustaining check reads it against the battery
             unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
+            if out["charge_missed"]:
+                unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
         rows.append((label, f"{text} {unit}".rstrip()))
     _print_table(rows)
     return 0

@@ -49,6 +49,7 @@ def test_simulate_conventional_json(capsys):
     litres = d["fuel_J"] / LHV_J_PER_KG / DENSITY_KG_PER_L
     assert d["fuel_l_per_100km"] == pytest.approx(litres / (d["length_m"] / 1e5), rel=1e-9)
     assert d["fuel_corrected_J"] == pytest.approx(d["fuel_J"] + d["lambda_b"] * d["delta_Eb_J"])
+    assert d["charge_missed"] is False  # no battery, nothing to miss
 
 
 def test_simulate_battery_override_and_table(capsys):
@@ -112,3 +113,38 @@ def test_simulate_errors_python_dash_m(args, words):
     assert r.returncode == 1 and r.stdout == ""
     assert r.stderr.count("\n") == 1 and r.stderr.startswith("jaxems: error: ")
     assert words in r.stderr and "Traceback" not in r.stderr
+
+
+class _FakeRun:
+    """What `strategies.simulate` returns, as far as the CLI reads it."""
+
+    def __init__(self, delta_Eb_J, status="ok"):
+        self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": 7e6,
+                       "fuel_l_per_100km": 18.6, "fuel_corrected_J": 7e6, "delta_Eb_J": delta_Eb_J,
+                       "Eb_min_J": 1e6, "Eb_max_J": 3e6, "mode_switches": 4, "gear_switches": 7,
+                       "lambda_b": -2.0, "max_speed_shortfall_mps": 0.5, "status": status,
+                       "wall_s": 0.1}
+
+    def as_dict(self):
+        return {"route": "short_track", "strategy": "baseline", **self.fields}
+
+
+@pytest.mark.parametrize("delta, status, missed", [
+    (-0.101e6, "ok", True),  # 2.5 % of the 4 MJ battery
+    (0.039e6, "ok", False),  # within 1 %
+    (0.041e6, "ok", True),
+    (-1.0e6, "unfinished", False),  # an unfinished run's balance is no charge verdict
+])
+def test_simulate_flags_a_charge_miss_as_sweep_reports_do(capsys, monkeypatch, delta, status,
+                                                          missed):
+    """`charge_missed`: |delta_Eb_J| beyond 1 % of the battery on a finished run (the check
+    `report.off_charge` applies to sweeps), in the JSON and on the table's delta E_b line."""
+    from jaxems import strategies
+
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: _FakeRun(delta, status))
+    code, out, err = run(capsys, "simulate", "short_track", "--strategy", "baseline", "--json")
+    assert code == 0, err
+    assert json.loads(out)["charge_missed"] is missed
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
+    line = next(x for x in out.splitlines() if x.startswith("delta E_b"))
+    assert line.endswith("beyond 1 %: not charge sustaining") is missed
