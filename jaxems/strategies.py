@@ -127,7 +127,7 @@ class Options(NamedTuple):
     ke_share: float = 0.15
     dwell: int = 3
     dp_n_E: int = 101
-    dp_lams: int = 24
+    dp_lams: int = 48
     dp_penalty: float = 1.0
     dp_attempts: int = 3
     plant_extra: float = 0.15
