@@ -40,7 +40,7 @@ eco-driving; see `jaxems.xla`). `--emitters elemental` or `fusion` compiles ever
 batch with one of them, to compare.
 
 `--option NAME=VALUE` (repeatable) sets a field of `strategies.Options` for every strategy
-measured, checked as a sweep file's options table is (`sweep.strategy_options`); VALUE is
+measured, checked as a sweep file's options table is (`sweep.option_pairs`); VALUE is
 a TOML value (`--option sustain=false`, `--option n_iter=3`). The JSON lists them under
 "options".
 
@@ -338,26 +338,14 @@ def scaling(args, base: dict) -> dict:
 
 
 def parse_options(pairs: list[str]) -> dict:
-    """{name: value} from NAME=VALUE strings (VALUE a TOML value), checked as a sweep file's
-    options are; SystemExit naming the bad one."""
-    import tomllib
+    """{name: value} from NAME=VALUE strings (`jaxems.sweep.option_pairs`); SystemExit naming
+    the bad one."""
+    from jaxems.sweep import SweepError, option_pairs
 
-    from jaxems.sweep import SweepError, strategy_options
-
-    out = {}
-    for pair in pairs:
-        name, sep, value = pair.partition("=")
-        try:
-            if not sep or not name.strip():
-                raise ValueError("expected NAME=VALUE")
-            out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
-        except (ValueError, tomllib.TOMLDecodeError) as e:
-            raise SystemExit(f"bench_sweep: --option {pair!r}: {e}") from None
     try:
-        strategy_options(out, "--option")
+        return option_pairs(pairs)
     except SweepError as e:
         raise SystemExit(f"bench_sweep: {e}") from None
-    return out
 
 
 def main(argv=None) -> int:

@@ -233,12 +233,20 @@ def cmd_simulate(args) -> int:
     _enable_x64()
     vp = _load_vehicle(args)  # mass and battery validated here
     path = resolve_route(args.route)
-    options = {} if args.n_iter is None else {"n_iter": args.n_iter}
+    options = {}
+    if args.option:  # checked before anything compiles
+        from .sweep import option_pairs
+
+        options = option_pairs(args.option)
+    if args.n_iter is not None:
+        if "n_iter" in options:
+            raise CLIError("--n-iter: given twice (also as --option n_iter=...)")
+        options["n_iter"] = args.n_iter
     res = simulate(str(path), vp, args.strategy, dt=args.dt, name=route_name(path), **options)
     out = res.as_dict()
     out |= {"vehicle": str(args.vehicle), "mass_kg": float(vp.mass),
             "battery_MJ": float(vp.E_b_max) / 1e6, "initial_soc": float(vp.soc0),
-            "dt_s": float(args.dt)}
+            "dt_s": float(args.dt), "options": options}
     # the charge-sustaining check, as sweep reports apply it (`report.off_charge`)
     out["charge_missed"] = bool(out["status"] == "ok"
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
@@ -248,6 +256,8 @@ def cmd_simulate(args) -> int:
     rows = [("route", f"{out['route']} ({path})"), ("strategy", out["strategy"]),
             ("vehicle", f"{args.vehicle}, {out['mass_kg']:.0f} kg, "
                         f"battery {out['battery_MJ']:g} MJ")]
+    if options:
+        rows.append(("options", ", ".join(f"{k}={v}" for k, v in options.items())))
     for key, label, unit, scale, fmt in SIMULATE_ROWS:
         v = out[key]
         text = str(v) if scale is None else format(v * scale, fmt)
@@ -279,6 +289,10 @@ def register_simulate(sub) -> None:
     p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
     p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
                    help="multilevel iterations (default 2)")
+    p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
+                   help="a strategy option (a field of jaxems.strategies.Options, as a sweep "
+                        "file's [options] table sets it; VALUE in TOML: sustain=false, "
+                        "l2_pieces=64); repeatable")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_simulate)
 

@@ -397,6 +397,24 @@ def load_config(path: str | Path) -> SweepConfig:
     )
 
 
+def option_pairs(pairs, where: str = "--option") -> dict:
+    """{name: value} from "NAME=VALUE" strings (VALUE a TOML value: `sustain=false`,
+    `l2_pieces=64`), checked as a sweep file's options table is (`strategy_options`).
+
+    Raises `SweepError` naming the pair, or the option, that is bad."""
+    out = {}
+    for pair in pairs:
+        name, sep, value = pair.partition("=")
+        try:
+            if not sep or not name.strip():
+                raise ValueError("expected NAME=VALUE")
+            out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
+        except (ValueError, tomllib.TOMLDecodeError) as e:
+            raise SweepError(f"{where} {pair!r}: {e}") from None
+    strategy_options(out, where)
+    return out
+
+
 def strategy_options(d: dict | None, where: str = "options"):
     """`jaxems.strategies.Options` from a table of the sweep file (None: the defaults).
 

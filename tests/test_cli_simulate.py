@@ -90,6 +90,10 @@ def test_simulate_registered():
         (["--battery-MJ", "0"], "battery_MJ: must be > 0"),
         (["--initial-soc", "1.5"], "initial_soc: must be in [0, 1]"),
         (["--n-iter", "0"], "--n-iter: must be a whole number >= 1"),
+        (["--option", "bogus=1"], "--option: unknown option 'bogus'"),
+        (["--option", "l2_pieces"], "--option 'l2_pieces': expected NAME=VALUE"),
+        (["--option", "n_iter=0"], "n_iter: must be a whole number >= 1"),
+        (["--option", "n_iter=2", "--n-iter", "3"], "--n-iter: given twice"),
     ],
 )
 def test_simulate_bad_options_in_process(capsys, args, words):
@@ -148,3 +152,28 @@ def test_simulate_flags_a_charge_miss_as_sweep_reports_do(capsys, monkeypatch, d
     code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
     line = next(x for x in out.splitlines() if x.startswith("delta E_b"))
     assert line.endswith("beyond 1 %: not charge sustaining") is missed
+
+
+def test_simulate_passes_options_on_and_echoes_them(capsys, monkeypatch):
+    """`--option NAME=VALUE` (repeatable, TOML values) reaches `simulate` as keyword options,
+    with `--n-iter`; the JSON and the table echo them."""
+    from jaxems import strategies
+
+    seen = {}
+
+    def fake(*a, **k):
+        seen.update(k)
+        return _FakeRun(0.0)
+
+    monkeypatch.setattr(strategies, "simulate", fake)
+    code, out, err = run(capsys, "simulate", "short_track", "--strategy", "multilevel",
+                         "--option", "sustain=false", "--option", "l2_pieces = 64",
+                         "--n-iter", "3", "--json")
+    assert code == 0, err
+    opts = {"sustain": False, "l2_pieces": 64, "n_iter": 3}
+    assert {k: seen[k] for k in opts} == opts
+    assert json.loads(out)["options"] == opts
+    code, out, _ = run(capsys, "simulate", "short_track", "--option", "tau_E=30.5")
+    assert code == 0 and seen["tau_E"] == 30.5
+    assert any(line.startswith("options") and line.endswith("tau_E=30.5")
+               for line in out.splitlines())
