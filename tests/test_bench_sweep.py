@@ -1,7 +1,6 @@
 """benchmarks/bench_sweep.py: its --option parsing (the measurements themselves are benchmarks)."""
 
 import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
@@ -9,7 +8,6 @@ import pytest
 _PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_sweep.py"
 _spec = importlib.util.spec_from_file_location("bench_sweep", _PATH)
 bs = importlib.util.module_from_spec(_spec)
-sys.modules.setdefault("bench_sweep", bs)
 _spec.loader.exec_module(bs)
 
 
