@@ -217,6 +217,21 @@ def _json_safe(d: dict) -> dict:
             for k, v in d.items()}
 
 
+def level2_flags(extra) -> list[str] | None:
+    """The names of the flags of the last iteration's Level 2 (`battery.status_names`: [] when
+    it converged; pieces-exhausted: its `l2_pieces` ran out with the battery's limits still
+    violated) for the strategies that iterate (multilevel, multilevel-eco); else None."""
+    import numpy as np
+
+    from .levels.battery import status_names
+
+    its = getattr(extra, "iterations", extra)
+    codes = getattr(its, "costate_status", None)
+    if codes is None:
+        return None
+    return status_names(np.asarray(codes).reshape(-1)[-1])
+
+
 def cmd_simulate(args) -> int:
     """`jaxems simulate`: one energy-management strategy on a route, closed loop on the plant.
 
@@ -250,6 +265,9 @@ def cmd_simulate(args) -> int:
     # the charge-sustaining check, as sweep reports apply it (`report.off_charge`)
     out["charge_missed"] = bool(out["status"] == "ok"
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
+    level2 = level2_flags(getattr(res, "extra", None))
+    if level2 is not None:
+        out["level2_status"] = level2
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0
@@ -266,6 +284,9 @@ def cmd_simulate(args) -> int:
             if out["charge_missed"]:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
         rows.append((label, f"{text} {unit}".rstrip()))
+    if level2 is not None:
+        hint = " (more pieces: --option l2_pieces=N)" if "pieces-exhausted" in level2 else ""
+        rows.append(("Level 2 (last plan)", (", ".join(level2) or "converged") + hint))
     _print_table(rows)
     return 0
 

@@ -122,7 +122,8 @@ def test_simulate_errors_python_dash_m(args, words):
 class _FakeRun:
     """What `strategies.simulate` returns, as far as the CLI reads it."""
 
-    def __init__(self, delta_Eb_J, status="ok"):
+    def __init__(self, delta_Eb_J, status="ok", extra=None):
+        self.extra = extra
         self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": 7e6,
                        "fuel_l_per_100km": 18.6, "fuel_corrected_J": 7e6, "delta_Eb_J": delta_Eb_J,
                        "Eb_min_J": 1e6, "Eb_max_J": 3e6, "mode_switches": 4, "gear_switches": 7,
@@ -177,3 +178,26 @@ def test_simulate_passes_options_on_and_echoes_them(capsys, monkeypatch):
     assert code == 0 and seen["tau_E"] == 30.5
     assert any(line.startswith("options") and line.endswith("tau_E=30.5")
                for line in out.splitlines())
+
+
+def test_simulate_names_the_last_plans_level2_flags(capsys, monkeypatch):
+    """multilevel's (and multilevel-eco's) last iteration's Level 2 flags, by name, in the JSON
+    (`level2_status`) and the table, with a hint where its pieces ran out; none for a strategy
+    without iterations."""
+    from jaxems import strategies
+    from jaxems.levels import battery as l2
+
+    its = strategies.Iteration(fuel_J=[7e6, 7e6], delta_Eb_J=[0.0, 0.0], lambda_b=[-2.0, -2.0],
+                               costate_status=[0, l2.AT_GUARD | l2.PIECES_EXHAUSTED])
+    for extra, names in ((its, ["at-guard", "pieces-exhausted"]),
+                         (its._replace(costate_status=[l2.AT_GUARD, 0]), [])):
+        monkeypatch.setattr(strategies, "simulate", lambda *a, e=extra, **k: _FakeRun(0.0, extra=e))
+        code, out, _ = run(capsys, "simulate", "short_track", "--json")
+        assert code == 0 and json.loads(out)["level2_status"] == names
+        code, out, _ = run(capsys, "simulate", "short_track")
+        line = next(x for x in out.splitlines() if x.startswith("Level 2 (last plan)"))
+        assert line.endswith("at-guard, pieces-exhausted (more pieces: --option l2_pieces=N)"
+                             if names else "converged")
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: _FakeRun(0.0))
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline", "--json")
+    assert code == 0 and "level2_status" not in json.loads(out)
