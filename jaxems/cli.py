@@ -4,8 +4,8 @@
     jaxems predict ROUTE [--vehicle NAME|PATH] [--mass KG] [--json] [--csv FILE]
                                                          Level 3 speed and power prediction
     jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X] [--initial-soc F]
-                    [--strategy NAME] [--dt S] [--n-iter N] [--json]
-                                                         one strategy on the closed-loop plant
+                    [--strategy NAME] [--dt S] [--n-iter N] [--option NAME=VALUE ...]
+                    [--json]                             one strategy on the closed-loop plant
 
 ROUTE is a `.vdri` or `.csv` file or the name of a bundled route (``short_track``,
 ``LongHaul``, ...). A bad file or value prints one line on stderr and exits with status 1.
