@@ -217,21 +217,6 @@ def _json_safe(d: dict) -> dict:
             for k, v in d.items()}
 
 
-def level2_flags(extra) -> list[str] | None:
-    """The names of the flags of the last iteration's Level 2 (`battery.status_names`: [] when
-    it converged; pieces-exhausted: its `l2_pieces` ran out with the battery's limits still
-    violated) for the strategies that iterate (multilevel, multilevel-eco); else None."""
-    import numpy as np
-
-    from .levels.battery import status_names
-
-    its = getattr(extra, "iterations", extra)
-    codes = getattr(its, "costate_status", None)
-    if codes is None:
-        return None
-    return status_names(np.asarray(codes).reshape(-1)[-1])
-
-
 def cmd_simulate(args) -> int:
     """`jaxems simulate`: one energy-management strategy on a route, closed loop on the plant.
 
@@ -240,7 +225,7 @@ def cmd_simulate(args) -> int:
     """
     from .io import resolve_route, route_name
     from .report import CHARGE_SHARE, off_charge
-    from .strategies import check_strategy, simulate
+    from .strategies import check_strategy, level2_names, simulate
 
     check_strategy(args.strategy)  # before anything is loaded or compiled
     if args.n_iter is not None and args.n_iter < 1:
@@ -265,9 +250,8 @@ def cmd_simulate(args) -> int:
     # the charge-sustaining check, as sweep reports apply it (`report.off_charge`)
     out["charge_missed"] = bool(out["status"] == "ok"
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
-    level2 = level2_flags(getattr(res, "extra", None))
-    if level2 is not None:
-        out["level2_status"] = level2
+    # the last plan's Level 2 flags by name (None: a strategy without the iteration's Level 2)
+    level2 = out["level2_status"] = level2_names(out["level2_status"])
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0

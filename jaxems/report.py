@@ -326,13 +326,26 @@ def charge_missed(df, share: float = CHARGE_SHARE):
                          df["battery_MJ"].to_numpy(float) * 1e6, share))
 
 
+def level2_exhausted(df):
+    """(len(df),) bool: finished runs whose last plan's Level 2 ran out of pieces with the
+    battery's limits still violated (`level2_status`; False where the column is absent)."""
+    from .levels.battery import PIECES_EXHAUSTED
+
+    if "level2_status" not in df:
+        return np.zeros(len(df), bool)
+    code = df["level2_status"].to_numpy(np.int64)
+    return (df["status"] == "ok").to_numpy() & (code >= 0) & ((code & PIECES_EXHAUSTED) > 0)
+
+
 def summary_table(df, ref: str | None):
-    """Per route and strategy: rows, ok rows, rows that miss the charge (`charge_missed`), mean
-    fuel and mean/min/max saving."""
+    """Per route and strategy: rows, ok rows, rows that miss the charge (`charge_missed`),
+    rows whose Level 2 ran out of pieces (`level2_exhausted`), mean fuel and mean/min/max
+    saving."""
     import pandas as pd
 
     rows = []
     missed = charge_missed(df)
+    exhausted = level2_exhausted(df)
     for r in _routes(df):
         for s in _strategies(df):
             sel = ((df["route"] == r) & (df["strategy"] == s)).to_numpy()
@@ -340,6 +353,7 @@ def summary_table(df, ref: str | None):
             ok = d[d["status"] == "ok"]
             row = {"route": r, "strategy": s, "rows": len(d), "ok": len(ok),
                    "charge_missed": int(np.sum(missed & sel)),
+                   "level2_exhausted": int(np.sum(exhausted & sel)),
                    "fuel_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok) else np.nan,
                    "l_per_100km_mean": np.nanmean(corrected_l_per_100km(ok)) if len(ok)
                    else np.nan}

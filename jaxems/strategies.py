@@ -145,7 +145,10 @@ class Options(NamedTuple):
 
 
 class Metrics(NamedTuple):
-    """What a run reports; scalars (one route, one vehicle)."""
+    """What a run reports; scalars (one route, one vehicle). level2_status: the flags of the
+    last plan's Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its
+    `l2_pieces` ran out with the battery's limits still violated) for the strategies that
+    iterate (multilevel, multilevel-eco); NO_LEVEL2 for the others."""
 
     length_m: Any
     trip_time_s: Any
@@ -158,6 +161,17 @@ class Metrics(NamedTuple):
     lambda_b: Any
     max_speed_shortfall_mps: Any
     status: Any
+    level2_status: Any
+
+
+NO_LEVEL2 = -1  # Metrics.level2_status of a strategy without the iteration's Level 2
+
+
+def level2_names(code) -> list[str] | None:
+    """A `Metrics.level2_status` by name: None for NO_LEVEL2, [] converged, else the flags
+    (`levels.battery.status_names`)."""
+    code = int(code)
+    return None if code == NO_LEVEL2 else l2.status_names(code)
 
 
 class Run(NamedTuple):
@@ -598,7 +612,8 @@ def _run_plan(vp, track: pl.Track, pred, plan: Plan, n_plant, dt):
     return pl.run_plant(vp, track, plan_controller, plan, jnp.zeros(()), m0, g0, n_plant, dt)
 
 
-def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Metrics:
+def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status,
+             level2=NO_LEVEL2) -> Metrics:
     t = res.final.tot
     E = res.trace.E_b
     status = status | jnp.where(pred.feasible, OK, INFEASIBLE_ROUTE)
@@ -611,6 +626,7 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status) -> Met
         mode_switches=t.mode_switches, gear_switches=t.gear_switches,
         lambda_b=jnp.asarray(lam_b, E.dtype), max_speed_shortfall_mps=t.max_shortfall,
         status=jnp.asarray(status, jnp.int32),
+        level2_status=jnp.asarray(level2, jnp.int32),
     )
 
 
@@ -785,9 +801,11 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
                                          length=opts.n_iter)
     last = lambda tree: jax.tree_util.tree_map(lambda x: x[-1], tree)  # noqa: E731
     res, pred = last(ress), last(preds)
-    # Level 2's own flags (at a guard, pieces exhausted, ...) stay in `extra`: the run is
-    # complete whatever they say, and its battery balance is reported
-    return Run(_metrics(res, pred, vp, its.lambda_b[-1], OK), res, pred, its)
+    # Level 2's own flags (at a guard, pieces exhausted, ...) are not the run's status: the run
+    # is complete whatever they say, and its battery balance is reported; the last plan's are
+    # reported apart (level2_status), every iteration's in `extra`
+    return Run(_metrics(res, pred, vp, its.lambda_b[-1], OK, its.costate_status[-1]), res, pred,
+               its)
 
 
 class EcoExtra(NamedTuple):

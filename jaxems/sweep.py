@@ -71,8 +71,11 @@ RESULTS_FILE = "results.parquet"
 RESULT_FIELDS = (
     "length_m", "trip_time_s", "fuel_J", "fuel_l_per_100km", "delta_Eb_J", "Eb_min_J",
     "Eb_max_J", "mode_switches", "gear_switches", "lambda_b", "max_speed_shortfall_mps",
+    "level2_status",
 )
-INT_FIELDS = ("mode_switches", "gear_switches")
+# level2_status: the last plan's Level 2 flags as an integer (`strategies.level2_names`; -1: the
+# strategy has none, and a chunk that failed)
+INT_FIELDS = ("mode_switches", "gear_switches", "level2_status")
 # Reference strategies for the savings columns.
 REFERENCES = ("conventional", "baseline")
 # Strategies without a battery: their fuel needs no correction for a battery energy change.
@@ -558,6 +561,7 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
         msg = " ".join(f"{type(e).__name__}: {e}".split())[:300]
         rows = {f: np.zeros(n, np.int64) if f in INT_FIELDS else np.full(n, np.nan)
                 for f in RESULT_FIELDS}
+        rows["level2_status"] = np.full(n, -1, np.int64)
         rows["length_m"] = np.full(n, float(np.asarray(route.length)))
         rows["status"] = np.array([f"error: {msg}"] * n, dtype=object)
     wall = time.perf_counter() - t0
@@ -810,7 +814,9 @@ def load_sweep(directory: str | Path):
     Columns: route, strategy, grid_index, the grid values (user units; mass_kg and battery_MJ
     always), the fields of ``jaxems simulate --json`` (length_m, trip_time_s, fuel_J,
     fuel_l_per_100km, delta_Eb_J, Eb_min_J, Eb_max_J, mode_switches, gear_switches, lambda_b,
-    max_speed_shortfall_mps, status), wall_s (wall time per configuration), chunk (its chunk id),
+    max_speed_shortfall_mps, status), level2_status (the last plan's Level 2 flags as an
+    integer, `strategies.level2_names`; -1 where the strategy has none), wall_s (wall time per
+    configuration), chunk (its chunk id),
     fuel_corrected_J, saving_vs_conventional_pct and saving_vs_baseline_pct (see `add_savings`).
     Reads ``results.parquet`` when it is up to date, otherwise merges the finished chunks (an
     unfinished sweep gives the rows computed so far).

@@ -50,6 +50,7 @@ def test_simulate_conventional_json(capsys):
     assert d["fuel_l_per_100km"] == pytest.approx(litres / (d["length_m"] / 1e5), rel=1e-9)
     assert d["fuel_corrected_J"] == pytest.approx(d["fuel_J"] + d["lambda_b"] * d["delta_Eb_J"])
     assert d["charge_missed"] is False  # no battery, nothing to miss
+    assert d["level2_status"] is None  # no Level 2
 
 
 def test_simulate_battery_override_and_table(capsys):
@@ -122,13 +123,12 @@ def test_simulate_errors_python_dash_m(args, words):
 class _FakeRun:
     """What `strategies.simulate` returns, as far as the CLI reads it."""
 
-    def __init__(self, delta_Eb_J, status="ok", extra=None):
-        self.extra = extra
+    def __init__(self, delta_Eb_J, status="ok", level2=-1):
         self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": 7e6,
                        "fuel_l_per_100km": 18.6, "fuel_corrected_J": 7e6, "delta_Eb_J": delta_Eb_J,
                        "Eb_min_J": 1e6, "Eb_max_J": 3e6, "mode_switches": 4, "gear_switches": 7,
                        "lambda_b": -2.0, "max_speed_shortfall_mps": 0.5, "status": status,
-                       "wall_s": 0.1}
+                       "level2_status": level2, "wall_s": 0.1}
 
     def as_dict(self):
         return {"route": "short_track", "strategy": "baseline", **self.fields}
@@ -181,23 +181,23 @@ def test_simulate_passes_options_on_and_echoes_them(capsys, monkeypatch):
 
 
 def test_simulate_names_the_last_plans_level2_flags(capsys, monkeypatch):
-    """multilevel's (and multilevel-eco's) last iteration's Level 2 flags, by name, in the JSON
-    (`level2_status`) and the table, with a hint where its pieces ran out; none for a strategy
-    without iterations."""
+    """multilevel's (and multilevel-eco's) last plan's Level 2 flags (`level2_status`), by
+    name, in the JSON and the table, with a hint where its pieces ran out; null for a strategy
+    without the iteration's Level 2."""
     from jaxems import strategies
     from jaxems.levels import battery as l2
 
-    its = strategies.Iteration(fuel_J=[7e6, 7e6], delta_Eb_J=[0.0, 0.0], lambda_b=[-2.0, -2.0],
-                               costate_status=[0, l2.AT_GUARD | l2.PIECES_EXHAUSTED])
-    for extra, names in ((its, ["at-guard", "pieces-exhausted"]),
-                         (its._replace(costate_status=[l2.AT_GUARD, 0]), [])):
-        monkeypatch.setattr(strategies, "simulate", lambda *a, e=extra, **k: _FakeRun(0.0, extra=e))
-        code, out, _ = run(capsys, "simulate", "short_track", "--json")
-        assert code == 0 and json.loads(out)["level2_status"] == names
-        code, out, _ = run(capsys, "simulate", "short_track")
+    for code, names in ((l2.AT_GUARD | l2.PIECES_EXHAUSTED, ["at-guard", "pieces-exhausted"]),
+                        (0, [])):
+        monkeypatch.setattr(strategies, "simulate", lambda *a, c=code, **k: _FakeRun(0.0, level2=c))
+        code_, out, _ = run(capsys, "simulate", "short_track", "--json")
+        assert code_ == 0 and json.loads(out)["level2_status"] == names
+        code_, out, _ = run(capsys, "simulate", "short_track")
         line = next(x for x in out.splitlines() if x.startswith("Level 2 (last plan)"))
         assert line.endswith("at-guard, pieces-exhausted (more pieces: --option l2_pieces=N)"
                              if names else "converged")
     monkeypatch.setattr(strategies, "simulate", lambda *a, **k: _FakeRun(0.0))
-    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline", "--json")
-    assert code == 0 and "level2_status" not in json.loads(out)
+    code_, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline", "--json")
+    assert code_ == 0 and json.loads(out)["level2_status"] is None
+    code_, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
+    assert not any(x.startswith("Level 2") for x in out.splitlines())

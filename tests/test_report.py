@@ -40,6 +40,7 @@ def synthetic(seed=0, drop=()):
                     "Eb_min_J": 0.0, "Eb_max_J": b * 1e6, "mode_switches": 3,
                     "gear_switches": 7, "lambda_b": np.nan if s == "conventional" else -2.0,
                     "max_speed_shortfall_mps": 0.1,
+                    "level2_status": -1 if s != "multilevel" else int(rng.choice([0, 2, 4, 6])),
                     "status": "infeasible-route" if (route, g) == ("hilly", 8) else "ok",
                     "wall_s": 0.01, "chunk": f"{route}-{s}",
                 })
@@ -122,6 +123,22 @@ def test_report_page_is_self_contained_with_every_figure(tmp_path, capsys):
     assert "<script" not in text
     assert "infeasible-route" in text  # the failed configuration is listed
     assert "best battery per mass" in text
+
+
+def test_level2_running_out_of_pieces_is_counted():
+    """Finished runs whose Level 2 flags hold pieces-exhausted (bit 4 of level2_status; -1: no
+    Level 2), counted per route and strategy as a loop over the rows counts them; a table
+    without the column counts none."""
+    df = synthetic(4)
+    want = {}
+    for row in df.itertuples():
+        hit = row.status == "ok" and row.level2_status >= 0 and (row.level2_status & 4) > 0
+        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + hit
+    got = rp.summary_table(df, "conventional")
+    assert {(r.route, r.strategy): r.level2_exhausted for r in got.itertuples()} == want
+    assert sum(want.values()) > 0 and all(want[(r, "baseline")] == 0 for r in ROUTES)
+    old = rp.summary_table(df.drop(columns=["level2_status"]), "conventional")
+    assert (old["level2_exhausted"] == 0).all()
 
 
 def test_charge_misses_are_counted_and_listed(tmp_path):

@@ -46,6 +46,12 @@ def test_every_run_finishes_with_the_json_fields(runs):
                 assert np.isfinite(d[k]), (name, k)
         assert 0.0 <= d["Eb_min_J"] <= d["Eb_max_J"] <= float(VP.E_b_max)
         assert d["fuel_J"] > 0
+        # the last plan's Level 2 flags where the strategy iterates, NO_LEVEL2 elsewhere
+        its = getattr(r.extra, "iterations", r.extra)
+        if name in ("multilevel", "multilevel-eco"):
+            assert d["level2_status"] == int(np.asarray(its.costate_status)[-1]) >= 0
+        else:
+            assert d["level2_status"] == S.NO_LEVEL2 and S.level2_names(d["level2_status"]) is None
 
 
 def test_trip_time_within_one_percent_of_level3(runs):
