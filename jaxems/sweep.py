@@ -73,8 +73,8 @@ RESULT_FIELDS = (
     "Eb_max_J", "mode_switches", "gear_switches", "lambda_b", "max_speed_shortfall_mps",
     "level2_status",
 )
-# level2_status: the last plan's Level 2 flags as an integer (`strategies.level2_names`; -1: the
-# strategy has none, and a chunk that failed)
+# level2_status: the last plan's Level 2 flags as an integer (`strategies.level2_names`;
+# `strategies.NO_LEVEL2`: the strategy has none, and a chunk that failed)
 INT_FIELDS = ("mode_switches", "gear_switches", "level2_status")
 # Reference strategies for the savings columns.
 REFERENCES = ("conventional", "baseline")
@@ -539,7 +539,7 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
     chunk in this process) and ``_wall_s`` (the chunk's wall time). An exception inside the
     strategy does not stop the sweep: every row of the chunk gets status ``error: ...``.
     """
-    from .strategies import simulate_batch
+    from .strategies import NO_LEVEL2, simulate_batch
 
     c = task.chunk
     n = c.n_real
@@ -561,7 +561,7 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
         msg = " ".join(f"{type(e).__name__}: {e}".split())[:300]
         rows = {f: np.zeros(n, np.int64) if f in INT_FIELDS else np.full(n, np.nan)
                 for f in RESULT_FIELDS}
-        rows["level2_status"] = np.full(n, -1, np.int64)
+        rows["level2_status"] = np.full(n, NO_LEVEL2, np.int64)
         rows["length_m"] = np.full(n, float(np.asarray(route.length)))
         rows["status"] = np.array([f"error: {msg}"] * n, dtype=object)
     wall = time.perf_counter() - t0
