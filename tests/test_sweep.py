@@ -129,6 +129,31 @@ def test_rows_equal_a_direct_simulate_batch_call(sweep_a):
     assert list(rows["status"]) == [str(s) for s in direct["status"][:2]]
 
 
+def test_a_chunk_whose_strategy_raises_gets_error_rows(sweep_a, monkeypatch):
+    """An exception inside the strategy does not stop the sweep: every real row of the chunk
+    gets status 'error: ...' (type and message), no fuel, the route's length, and no Level 2
+    (`strategies.NO_LEVEL2`)."""
+    p, _, _ = sweep_a
+    cfg = sw.load_config(p)
+    chunk = [c for c in sw.plan_chunks(cfg) if c.route_index == 1][-1]
+    pts = cfg.points()
+    task = sw.ChunkTask(chunk=chunk, vehicles=sw.vehicle_batch(
+        cfg.vehicle, [pts[i] for i in chunk.grid_index]), dt=1.0, n_steps=64,
+        precision="float64", options=None)
+
+    def boom(*a, **k):
+        raise FloatingPointError("the plant\nfell over")
+
+    monkeypatch.setattr(st, "simulate_batch", boom)
+    route = cfg.routes[1].route
+    rows = sw.compute_chunk(task, route)
+    n = chunk.n_real
+    assert list(rows["status"]) == ["error: FloatingPointError: the plant fell over"] * n
+    assert np.isnan(rows["fuel_J"]).all() and (rows["mode_switches"] == 0).all()
+    assert (rows["level2_status"] == st.NO_LEVEL2).all()
+    assert (rows["length_m"] == float(np.asarray(route.length))).all()
+
+
 def test_rerun_and_resume_compute_only_what_is_missing(sweep_a, tmp_path, capsys):
     p, out, _ = sweep_a
     full = sw.load_sweep(out)
