@@ -33,7 +33,7 @@ from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _f, _list, _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 STRATS = ("multilevel", "multilevel-eco")
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/eco", help="folder of the plots (out/eco)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    routes = [x.strip() for x in args.routes.split(",") if x.strip()]
+    routes = _list(args.routes)
     return print_result("eco_velocity", lambda: run_eco(routes, args.mass, args.dt,
                                                         args.vehicle, args.out),
                         args.json, format_table)

@@ -51,6 +51,11 @@ def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
+def _list(text: str) -> list[str]:
+    """The items of a comma-separated option, stripped, empty ones dropped."""
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
 def _num(x):
     """A JSON number (None for NaN/inf)."""
     x = float(x)
@@ -158,7 +163,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    strategies = _list(args.strategies)
     return print_result("table7", lambda: run_table(args.route, args.mass, strategies, args.dt,
                                                     args.n_iter, args.vehicle),
                         args.json, format_table)

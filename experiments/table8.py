@@ -33,7 +33,7 @@ from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import PAPER_STRATEGIES, STRATEGIES, simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _f, _list, _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 DEFAULT_STRATEGIES = PAPER_STRATEGIES  # conventional, baseline, multilevel, -mpc, dp-bound
@@ -100,10 +100,6 @@ def format_table(out: dict) -> str:
                  + ", ".join(f"{p['label']} {p['fuel_l_per_100km']:.1f} l/100 km "
                              f"({p['saving_pct']:+.1f} %)" for p in out["paper"]))
     return "\n".join(lines)
-
-
-def _list(text: str) -> list[str]:
-    return [x.strip() for x in text.split(",") if x.strip()]
 
 
 def main(argv=None) -> int:

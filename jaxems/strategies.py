@@ -1305,6 +1305,16 @@ def default_chunk(strategy: str) -> int:
     return CHUNK[check_strategy(strategy)]
 
 
+def route_arg(route) -> Route:
+    """A route argument of the API: a `Route` (checked, `route.check_route`: it may have been
+    built or changed in Python) or a file path or bundled route name (loaded, and so checked)."""
+    if isinstance(route, Route):
+        return check_route(route)
+    from .io import load_route
+
+    return load_route(route)
+
+
 def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
                    n_steps: int | None = None, options: Options | None = None,
                    switching: sw.SwitchCostParams | None = None,
@@ -1322,11 +1332,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     `fuel_corrected_J` and `status`.
     """
     check_strategy(strategy)
-    if not isinstance(route, Route):
-        from .io import load_route
-
-        route = load_route(route)
-    check_route(route)
+    route = route_arg(route)
     if np.ndim(vehicles.mass) != 1:
         raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
                            "(stack_vehicles; for one vehicle use simulate)")
@@ -1385,7 +1391,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     `SwitchCostParams` (None: the defaults; `switching.checked_params`). Bad options raise
     ValueError naming the option.
     """
-    from .io import load_route, route_name
+    from .io import route_name
 
     check_strategy(strategy)
     dt = _check_dt(dt)
@@ -1395,12 +1401,8 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
                          f"(options: {', '.join(Options._fields)})")
     opts = (options or Options())._replace(**option_kw)
     _check_options(opts)
-    if isinstance(route, Route):
-        rname = name or "route"
-        check_route(route)
-    else:
-        rname = name or route_name(route)
-        route = load_route(route)
+    rname = name or ("route" if isinstance(route, Route) else route_name(route))
+    route = route_arg(route)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
                                       initial_soc=initial_soc))
