@@ -172,10 +172,11 @@ def measure(spec: dict) -> dict:
     if spec["tile"] > 1:
         route = tile_route(route, spec["tile"])
     B, name = spec["batch"], spec["strategy"]
-    if spec["chunk"] is None:  # the strategy's default, as simulate_batch takes it
-        spec = {**spec, "chunk": st.default_chunk(name)}
     vps = vehicles(B, dtype)
     n_steps = st.steps_for_batch(route, vps)
+    if spec["chunk"] is None:  # the strategy's default, as simulate_batch takes it
+        spec = {**spec, "chunk": st.default_chunk(name, n_steps=int(n_steps),
+                                                  itemsize=np.dtype(dtype).itemsize)}
 
     if spec.get("emitters", "library") != "library":  # one XLA CPU code generator for all
         st.BATCH_ELEMENTAL[name] = spec["emitters"] == "elemental"
@@ -222,7 +223,11 @@ def measure(spec: dict) -> dict:
     busiest = sorted((th1[k] - th0.get(k, 0.0) for k in th1), reverse=True)[:4]
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     med = statistics.median(times)
+    dev = jax.devices()[0]
+    stats = dev.memory_stats() if dev.platform != "cpu" else None
     return {
+        "backend": dev.platform, "device_kind": dev.device_kind,
+        "peak_device_MB": None if not stats else stats.get("peak_bytes_in_use", 0) / 2**20,
         "mode": spec["mode"], "strategy": name, "batch": B, "tile": spec["tile"],
         "devices": len(jax.devices()), "chunk": spec["chunk"] if spec["mode"] != "plain"
         else None, "n_steps": int(n_steps), "length_m": float(np.asarray(route.length)),
@@ -271,8 +276,11 @@ def code_version() -> dict:
             "jaxems_dirty": bool(git("status", "--porcelain", "--", "jaxems"))}
 
 
+KEEP_FUEL = False  # --keep-fuel: each run's fuel_J (per configuration) stays in the JSON
+
+
 def _public(res: dict) -> dict:
-    return {k: v for k, v in res.items() if k not in ("fuel_J",)}
+    return {k: v for k, v in res.items() if KEEP_FUEL or k != "fuel_J"}
 
 
 def _rel_diff(a, b) -> float:
@@ -360,9 +368,9 @@ def main(argv=None) -> int:
                     help="host devices for the sharded path, or a comma list to compare")
     ap.add_argument("--chunk", type=int, default=None,
                     help="most configurations vmapped at once per device (default: each "
-                         "strategy's, strategies.default_chunk: 1, unbatched, for "
+                         "strategy's, strategies.default_chunk: on a CPU 1, unbatched, for "
                          "multilevel, multilevel-mpc, multilevel-eco and dp-bound, 16 for "
-                         "conventional and baseline)")
+                         "conventional and baseline; on a GPU what its memory holds)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--plain", action="store_true", help="time simulate_batch only")
     g.add_argument("--compare-plain", action="store_true",
@@ -379,8 +387,13 @@ def main(argv=None) -> int:
                     help="no subprocesses (peak RSS then accumulates over runs)")
     ap.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                     help="a strategies.Options field for every strategy (repeatable)")
+    ap.add_argument("--keep-fuel", action="store_true",
+                    help="keep each run's fuel_J per configuration in the JSON (to compare "
+                         "backends: configuration i is grid point i mod 64)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    global KEEP_FUEL
+    KEEP_FUEL = args.keep_fuel
     if args.child:
         print(json.dumps(measure(json.loads(args.child))))
         return 0

@@ -28,3 +28,35 @@ def test_a_bad_option_is_named(pair, says):
     with pytest.raises(SystemExit, match=says) as e:
         bs.parse_options([pair])
     assert "bench_sweep" in str(e.value)
+
+
+_cpath = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_fuel.py"
+_cspec = importlib.util.spec_from_file_location("compare_fuel", _cpath)
+cf = importlib.util.module_from_spec(_cspec)
+_cspec.loader.exec_module(cf)
+
+
+def test_compare_fuel_matches_a_plain_computation(tmp_path):
+    import json
+
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    b = rng.uniform(1e8, 1e9, 64)
+    a = np.tile(b, 2) * (1 + rng.normal(0, 1e-4, 128))  # a batch of 128: the grid twice
+    a[3] = b[3]  # one configuration exact
+    pa, pb = tmp_path / "a.json", tmp_path / "b.json"
+    pa.write_text(json.dumps({"strategies": {"multilevel": {"fuel_J": a.tolist()}}}))
+    pb.write_text(json.dumps({"strategies": {"multilevel": {"fuel_J": b.tolist()},
+                                             "baseline": {"fuel_J": b.tolist()}}}))
+    r = cf.compare(cf.fuel(str(pa))["multilevel"], cf.fuel(str(pb))["multilevel"])
+    rel = [abs(a[i] - b[i]) / b[i] for i in range(64)]
+    assert r["n"] == 64 and r["max"] == max(rel) and r["median"] == float(np.median(rel))
+    assert r["within_1e-9"] == sum(x <= 1e-9 for x in rel) >= 1
+    spread = max((max(a[i], a[i + 64]) - min(a[i], a[i + 64])) / ((a[i] + a[i + 64]) / 2)
+                 for i in range(64))
+    assert abs(r["max_spread_same_config_A"] - spread) < 1e-12
+    assert cf.main([str(pa), str(pb)]) == 0  # strategies in both files only
+    pb.write_text(json.dumps({"strategies": {"multilevel": {"configs_per_s": 1.0}}}))
+    with pytest.raises(SystemExit, match="no fuel_J"):
+        cf.fuel(str(pb))
