@@ -1298,11 +1298,49 @@ def _fields(m: Metrics, vp) -> dict:
 CHUNK = {"multilevel": 1, "multilevel-mpc": 1, "multilevel-eco": 1, "dp-bound": 1,
          "conventional": 16, "baseline": 16}
 assert set(CHUNK) == set(KERNELS), "every strategy has its chunk"
+# On an accelerator (a GPU) a chunk's vehicles run in parallel and its steps one after the
+# other, so a call's time hardly grows with the chunk until the device is full: multilevel on
+# an H100, LongHaul, float32, chunks of the whole batch, 18.8 / 24.7 / 34.2 s a call for 256 /
+# 1024 / 4096 configurations (13.6 / 41.4 / 119.9 configurations/s; docs/bench/gpu/). A chunk
+# is then as large as a share of the device's memory allows. Device memory per configuration
+# and Level 3 step in float32 (bytes): multilevel, conventional and baseline from their peaks
+# on that H100 (35.0 GB at 4096, 5.24 GB at 1024, 0.37 GB at 1024 configurations of 5376
+# steps); the others from XLA's CPU buffer sizes (an upper bound: multilevel's is 4x its GPU
+# peak)
+ACCEL_BYTES_PER_STEP = {"multilevel": 1600, "conventional": 960, "baseline": 70,
+                        "multilevel-mpc": 820, "multilevel-eco": 5800, "dp-bound": 63000}
+assert set(ACCEL_BYTES_PER_STEP) == set(KERNELS), "every strategy has its device memory"
+ACCEL_MEMORY_SHARE = 0.6  # of the device's memory limit that a chunk may take
+ACCEL_CHUNK = 1024  # where the device does not tell its memory
 
 
-def default_chunk(strategy: str) -> int:
-    """`simulate_batch`'s chunk (vehicles vmapped at once per device) for ``chunk="auto"``."""
-    return CHUNK[check_strategy(strategy)]
+def device_memory() -> int | None:
+    """Bytes the default device's allocator may use (None: a CPU, or a device that does not
+    say)."""
+    dev = jax.devices()[0]
+    stats = dev.memory_stats() if dev.platform != "cpu" else None
+    limit = (stats or {}).get("bytes_limit")
+    return int(limit) if limit else None
+
+
+def default_chunk(strategy: str, backend: str | None = None, n_steps: int = 5376,
+                  itemsize: int = 4, memory: int | None = None) -> int:
+    """`simulate_batch`'s chunk (vehicles vmapped at once per device) for ``chunk="auto"``.
+
+    backend: "cpu", "gpu", ... (None: JAX's default backend). On a CPU the strategy's `CHUNK`;
+    on an accelerator as many vehicles of `n_steps` Level 3 steps, in floats of `itemsize`
+    bytes, as fit in `ACCEL_MEMORY_SHARE` of `memory` (bytes; None: `device_memory()`, and
+    `ACCEL_CHUNK` where that is unknown), at `ACCEL_BYTES_PER_STEP`.
+    """
+    name = check_strategy(strategy)
+    backend = jax.default_backend() if backend is None else backend
+    if backend == "cpu":
+        return CHUNK[name]
+    memory = device_memory() if memory is None else memory
+    if not memory:
+        return ACCEL_CHUNK
+    per_vehicle = ACCEL_BYTES_PER_STEP[name] * max(int(n_steps), 1) * itemsize / 4
+    return max(1, int(ACCEL_MEMORY_SHARE * memory // per_vehicle))
 
 
 def route_arg(route) -> Route:
@@ -1327,7 +1365,8 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     of a route so that chunks share one compilation. The batch is split over `devices` (None:
     all of the default backend; on a CPU `shard.use_host_devices` makes one per core) and runs
     in vmapped chunks of at most `chunk` vehicles per device (None: all at once; "auto":
-    `default_chunk(strategy)`), which bounds the memory (`shard.map_batch`). Returns (B,)
+    `default_chunk`: a CPU's per-strategy chunk, or what an accelerator's memory holds), which
+    bounds the memory (`shard.map_batch`). Returns (B,)
     arrays keyed as the JSON of `jaxems simulate` (less route, strategy, wall_s) plus
     `fuel_corrected_J` and `status`.
     """
@@ -1340,13 +1379,15 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     if isinstance(chunk, str):
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
-        chunk = default_chunk(strategy)
     dt = _check_dt(dt)
     opts = resolve_options(options or Options(), vehicles)
     _check_options(opts)
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
+    if chunk == "auto":
+        chunk = default_chunk(strategy, n_steps=int(n_steps),
+                              itemsize=np.asarray(vehicles.mass).dtype.itemsize)
     fn = _item_fn(strategy, dt, int(n_steps), opts)
     m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices,
                         elemental=BATCH_ELEMENTAL[strategy])

@@ -410,6 +410,30 @@ def test_bad_options_are_clear_errors():
         S.simulate("short_track", VP, "multilevel", horizon=3)
 
 
+def test_default_chunk_on_a_cpu_and_on_an_accelerator(monkeypatch):
+    for name in S.STRATEGIES:
+        assert S.default_chunk(name, backend="cpu") == S.CHUNK[name]
+    # an accelerator: what a share of its memory holds, fewer for longer routes and float64
+    GB = 2**30
+    per = S.ACCEL_BYTES_PER_STEP["multilevel"] * 5376
+    c = S.default_chunk("multilevel", backend="gpu", n_steps=5376, memory=60 * GB)
+    assert c == int(S.ACCEL_MEMORY_SHARE * 60 * GB // per) and 3000 < c < 5000
+    assert S.default_chunk("multilevel", backend="gpu", n_steps=2 * 5376,
+                           memory=60 * GB) == int(S.ACCEL_MEMORY_SHARE * 60 * GB // (2 * per))
+    assert S.default_chunk("multilevel", backend="gpu", n_steps=5376, itemsize=8,
+                           memory=60 * GB) == int(S.ACCEL_MEMORY_SHARE * 60 * GB // (2 * per))
+    assert S.default_chunk("baseline", backend="gpu", memory=60 * GB) > c
+    assert S.default_chunk("dp-bound", backend="gpu", memory=GB // 100) == 1  # never 0
+    monkeypatch.setattr(S, "device_memory", lambda: None)  # a device that does not say
+    assert S.default_chunk("multilevel", backend="gpu") == S.ACCEL_CHUNK
+    with pytest.raises(ValueError, match="strategy"):
+        S.default_chunk("eco", backend="gpu", memory=GB)
+    if jax.default_backend() == "cpu":  # a CPU's memory is not the chunk's limit
+        assert S.device_memory() is None
+    else:
+        assert S.device_memory() > 0
+
+
 @pytest.mark.parametrize("strategy", ["conventional", "baseline"])
 def test_float32_agrees_with_float64(runs, strategy):
     """Sweeps run in float32: fuel within 0.1 % of float64 (the design's requirement; on the
