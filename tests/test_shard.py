@@ -162,7 +162,8 @@ CHILD = textwrap.dedent("""
 
 
 def test_two_host_devices_subprocess():
-    env = dict(os.environ, XLA_FLAGS="--xla_cpu_enable_fast_math=false "
+    # host devices are CPU devices: JAX_PLATFORMS keeps a GPU, where one is, out of the child
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_cpu_enable_fast_math=false "
                "--xla_force_host_platform_device_count=7")
     r = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True,
                        timeout=120)
