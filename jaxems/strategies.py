@@ -1436,12 +1436,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
 
     check_strategy(strategy)
     dt = _check_dt(dt)
-    bad = set(option_kw) - set(Options._fields)
-    if bad:
-        raise ValueError(f"unknown option(s): {', '.join(sorted(bad))} "
-                         f"(options: {', '.join(Options._fields)})")
-    opts = (options or Options())._replace(**option_kw)
-    _check_options(opts)
+    opts = make_options(options, **option_kw)
     rname = name or ("route" if isinstance(route, Route) else route_name(route))
     route = route_arg(route)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
@@ -1467,6 +1462,17 @@ def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
     if opts.same_open_time is None:
         same = bool(np.all(np.asarray(vehicles.dt_M) == np.asarray(vehicles.dt_G)))
         opts = opts._replace(same_open_time=same)
+    return opts
+
+
+def make_options(base: Options | None = None, /, **fields) -> Options:
+    """`base` (None: the defaults) with `fields` replaced, checked: ValueError naming an
+    unknown option or a bad value (the one check of `simulate`, sweep files and --option)."""
+    bad = sorted(set(fields) - set(Options._fields))
+    if bad:
+        raise ValueError(f"unknown option {bad[0]!r} (options: {', '.join(Options._fields)})")
+    opts = (base or Options())._replace(**fields)
+    _check_options(opts)
     return opts
 
 

@@ -427,18 +427,10 @@ def strategy_options(d: dict | None, where: str = "options"):
 
     if not d:
         return None
-    bad = sorted(set(d) - set(st.Options._fields))
-    if bad:
-        raise SweepError(f"{where}: unknown option {bad[0]!r} (options: "
-                         f"{', '.join(st.Options._fields)})")
-    opts = st.Options()._replace(**d)
-    check = getattr(st, "_check_options", None)
-    if check is not None:
-        try:
-            check(opts)
-        except ValueError as e:
-            raise SweepError(f"{where}: {e}") from None
-    return opts
+    try:
+        return st.make_options(**d)
+    except ValueError as e:
+        raise SweepError(f"{where}: {e}") from None
 
 
 # ------------------------------------------------------------------------------------ chunks
