@@ -3,7 +3,7 @@
 # lent GPU machine; no install: its python3 has JAX with CUDA, numpy, optax, pandas, pyarrow,
 # pytest and hypothesis).
 #   bash benchmarks/gpu.sh PHASE [OUT]
-#   PHASE: info | throughput | mpc | batch | float64 | tests
+#   PHASE: info | throughput | mpc | batch | float64 | tests | suite
 # JSON files go to OUT (default $OUT, else out/gpu); progress lines on stderr. Compare a run's
 # fuel with a CPU run's: python benchmarks/compare_fuel.py GPU.json CPU.json
 set -u
@@ -45,6 +45,11 @@ case $phase in
       tests/test_dp.py tests/test_level1.py tests/test_guards.py tests/test_powersplit.py \
       tests/test_plant.py tests/test_velocity.py tests/test_shard.py 2>&1 | tee "$out/gpu_tests.log" \
       | tail -15
+    ;;
+  suite)  # the whole suite on the GPU in 8 processes (not run yet: the lent time ran out)
+    set -o pipefail
+    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout 560 python3 -m pytest -q -n 8 \
+      -p no:cacheprovider tests 2>&1 | tee "$out/gpu_suite.log" | tail -30
     ;;
   *) echo "gpu.sh: unknown phase $phase" >&2; exit 2 ;;
 esac
