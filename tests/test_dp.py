@@ -152,6 +152,35 @@ def test_float32_pointers_and_inf():
     assert not bool(r.feasible)
 
 
+@pytest.mark.parametrize("n_t", [2000, 2003])  # shifts after blocks of steps / every step
+def test_float32_decides_as_float64_over_a_long_route(n_t):
+    """A route's accumulated cost (here 2e8) has an ulp of 16 in float32, coarser than the
+    differences that decide (multiples of 0.25): the kernel keeps V near zero, so float32 takes
+    float64's path (all values are exact in float32 then) and its cost within rounding."""
+    rng = np.random.default_rng(7)
+    n_s = 6
+    stage = 1e5 + 0.25 * rng.integers(0, 40, (n_t, n_s))
+    stage[rng.random(stage.shape) < 0.1] = np.inf
+    C = 0.25 * rng.integers(0, 80, (n_s, n_s))
+    np.fill_diagonal(C, 0.0)
+    init = np.zeros(n_s)
+    run = xla.jit(lambda a, b, c: dp.viterbi(a, dp.dense_transition(b), c))
+    r64 = run(stage, C, init)
+    r32 = run(*(x.astype(np.float32) for x in (stage, C, init)))
+    assert r32.cost.dtype == np.float32
+    np.testing.assert_array_equal(np.asarray(r32.path), np.asarray(r64.path))
+    assert int(r32.start) == int(r64.start)
+    np.testing.assert_allclose(float(r32.cost), float(r64.cost), rtol=1e-6)
+    # the optimum of the plain loop (its ties go elsewhere: the path may differ, not its cost)
+    ref = R.viterbi_path(stage, np.broadcast_to(C, (n_t, n_s, n_s)), init)
+    assert float(r64.cost) == ref.cost
+    assert float(dp.path_cost(stage, C, init, r64.path, r64.start)) == ref.cost
+    s0, cost0 = xla.jit(lambda a, b, c: dp.viterbi_first(a, dp.dense_transition(b), c))(
+        *(x.astype(np.float32) for x in (stage, C, init)))
+    assert int(s0) == int(r64.path[0])
+    np.testing.assert_allclose(float(cost0), float(r64.cost), rtol=1e-6)
+
+
 # ------------------------------------------------------------------------------ dp-bound's DP
 class _Pred(NamedTuple):  # what `strategies.bound_dp` reads of a Level 3 prediction
     v: Any
