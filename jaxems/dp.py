@@ -29,7 +29,7 @@ Back-pointers are stored as int8 / int16 when S allows. Ties go to the lowest st
 
 Precision: the decisions depend on differences of V between states only, so each step's
 least finite state cost is taken out of its stage costs before the recursion and added back
-to the optimal cost after it (`_relative`). V then accumulates what the states cost beyond
+to the optimal cost after it (`_prepare`). V then accumulates what the states cost beyond
 each step's cheapest (and the transitions), not the whole route's cost: in float32 that cost
 (1e8-1e9 J) has an ulp of 8-64 J, coarser than the differences that decide between modes and
 gears. The recursion itself is unchanged (no work per step is added).
