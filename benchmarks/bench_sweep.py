@@ -224,10 +224,10 @@ def measure(spec: dict) -> dict:
     cpu = (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
     med = statistics.median(times)
     dev = jax.devices()[0]
-    stats = dev.memory_stats() if dev.platform != "cpu" else None
+    peak = st.device_memory("peak_bytes_in_use")
     return {
         "backend": dev.platform, "device_kind": dev.device_kind,
-        "peak_device_MB": None if not stats else stats.get("peak_bytes_in_use", 0) / 2**20,
+        "peak_device_MB": None if peak is None else peak / 2**20,
         "mode": spec["mode"], "strategy": name, "batch": B, "tile": spec["tile"],
         "devices": len(jax.devices()), "chunk": spec["chunk"] if spec["mode"] != "plain"
         else None, "n_steps": int(n_steps), "length_m": float(np.asarray(route.length)),
@@ -276,11 +276,9 @@ def code_version() -> dict:
             "jaxems_dirty": bool(git("status", "--porcelain", "--", "jaxems"))}
 
 
-KEEP_FUEL = False  # --keep-fuel: each run's fuel_J (per configuration) stays in the JSON
-
-
-def _public(res: dict) -> dict:
-    return {k: v for k, v in res.items() if KEEP_FUEL or k != "fuel_J"}
+def _public(res: dict, keep_fuel: bool) -> dict:
+    """A run's entry in the JSON: fuel_J (per configuration) only with --keep-fuel."""
+    return {k: v for k, v in res.items() if keep_fuel or k != "fuel_J"}
 
 
 def _rel_diff(a, b) -> float:
@@ -301,16 +299,16 @@ def throughput(args, devices: list[int], base: dict) -> dict:
             plain = run_spec({**base, "mode": "plain", "strategy": name, "devices": 1},
                              args.in_process)
         if args.plain:
-            out[name] = _public(plain)
+            out[name] = _public(plain, args.keep_fuel)
             continue
         top = runs[max(devices)]
-        entry = _public(top)
+        entry = _public(top, args.keep_fuel)
         if len(runs) > 1:
-            entry["by_devices"] = {str(n): _public(r) for n, r in runs.items()}
+            entry["by_devices"] = {str(n): _public(r, args.keep_fuel) for n, r in runs.items()}
             if 1 in runs:
                 entry["speedup_vs_1_device"] = runs[1]["median_s"] / top["median_s"]
         if plain is not None:
-            entry["plain"] = _public(plain)
+            entry["plain"] = _public(plain, args.keep_fuel)
             entry["speedup_vs_plain"] = plain["median_s"] / top["median_s"]
             entry["max_rel_diff_fuel_vs_plain"] = _rel_diff(top["fuel_J"], plain["fuel_J"])
         out[name] = entry
@@ -336,9 +334,9 @@ def scaling(args, base: dict) -> dict:
     for name in args.scaling_strategy.split(","):
         spec = {**base, "mode": "sharded", "strategy": name, "devices": n}
         by_len = [_public(run_spec({**spec, "tile": k, "batch": args.scaling_batch},
-                                   args.in_process)) for k in lengths]
-        by_batch = [_public(run_spec({**spec, "tile": 1, "batch": b}, args.in_process))
-                    for b in batches]
+                                   args.in_process), args.keep_fuel) for k in lengths]
+        by_batch = [_public(run_spec({**spec, "tile": 1, "batch": b}, args.in_process),
+                            args.keep_fuel) for b in batches]
         out[name] = {"length": by_len, "batch": by_batch,
                      "length_ratio": _ratios(by_len, "tile"),
                      "batch_ratio": _ratios(by_batch, "batch")}
@@ -392,8 +390,6 @@ def main(argv=None) -> int:
                          "backends: configuration i is grid point i mod 64)")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
-    global KEEP_FUEL
-    KEEP_FUEL = args.keep_fuel
     if args.child:
         print(json.dumps(measure(json.loads(args.child))))
         return 0

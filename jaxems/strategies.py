@@ -1314,13 +1314,14 @@ ACCEL_MEMORY_SHARE = 0.6  # of the device's memory limit that a chunk may take
 ACCEL_CHUNK = 1024  # where the device does not tell its memory
 
 
-def device_memory() -> int | None:
-    """Bytes the default device's allocator may use (None: a CPU, or a device that does not
-    say)."""
+def device_memory(key: str = "bytes_limit") -> int | None:
+    """A memory figure (bytes) of the default device's allocator: "bytes_limit", what it may
+    use, or another key of `memory_stats` ("peak_bytes_in_use"); None on a CPU, or where the
+    device does not say."""
     dev = jax.devices()[0]
     stats = dev.memory_stats() if dev.platform != "cpu" else None
-    limit = (stats or {}).get("bytes_limit")
-    return int(limit) if limit else None
+    value = (stats or {}).get(key)
+    return int(value) if value else None
 
 
 def default_chunk(strategy: str, backend: str | None = None, n_steps: int = 5376,
