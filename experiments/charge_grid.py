@@ -56,7 +56,7 @@ def run_grid(route: str = "short_track", masses=(25000.0,), socs=(0.1, 0.3, 0.5,
         check_strategy(s)
     rt = load_route(route)
     base = load_vehicle(vehicle)
-    vps = [(m, s, check_vehicle(with_overrides(base, mass_kg=m, initial_soc=s)))
+    vps = [(m, s, check_vehicle(with_overrides(base, mass_kg=m).replace(soc0=s)))
            for m in masses for s in socs]
     rows = []
     for strategy in strategies:
