@@ -6,6 +6,8 @@
     jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X] [--initial-soc F]
                     [--strategy NAME] [--dt S] [--n-iter N] [--option NAME=VALUE ...]
                     [--json]                             one strategy on the closed-loop plant
+    jaxems compare ROUTE [--vehicle ...] [--mass KG] [--battery-MJ X] [--strategies A,B,...]
+                   [--option NAME=VALUE ...] [--json]    fuel and savings of several strategies
 
 ROUTE is a `.vdri` or `.csv` file or the name of a bundled route (``short_track``,
 ``LongHaul``, ...). A bad file or value prints one line on stderr and exits with status 1.
@@ -283,23 +285,117 @@ def register_simulate(sub) -> None:
     )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
-    p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
-                   help="usable battery energy in MJ (overrides the vehicle file)")
-    p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
-                   help="starting charge, a fraction of the battery in [0, 1] (overrides the "
-                        "vehicle file)")
+    _battery_args(p)
     p.add_argument("--strategy", default="multilevel", metavar="NAME",
                    help="conventional, baseline, multilevel (default), multilevel-mpc, "
                         "dp-bound, multilevel-eco")
     p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
     p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
                    help="multilevel iterations (default 2)")
+    _option_arg(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_simulate)
+
+
+# ---------------------------------------------------------------------------------- compare
+# (JSON key, column head, format of the value) of the human-readable `compare` table
+COMPARE_COLUMNS = [
+    ("fuel_J", "fuel MJ", "9.3f", 1e-6),
+    ("fuel_l_per_100km", "l/100km", "8.2f", 1.0),
+    ("delta_Eb_J", "dE_b MJ", "+8.3f", 1e-6),
+    ("fuel_corrected_J", "corr. MJ", "9.3f", 1e-6),
+    ("fuel_corrected_l_per_100km", "corr. l/100km", "13.2f", 1.0),
+    ("saving_vs_conventional_pct", "vs conv. %", "10.1f", 1.0),
+    ("saving_vs_baseline_pct", "vs base. %", "10.1f", 1.0),
+    ("trip_time_s", "trip s", "7.0f", 1.0),
+    ("wall_s", "wall s", "7.1f", 1.0),
+]
+
+
+def cmd_compare(args) -> int:
+    """`jaxems compare`: several energy-management strategies on one route and one vehicle.
+
+    Prints each strategy's fuel (MJ and l/100 km), its battery balance, its fuel corrected for
+    the battery energy left over (fuel + lambda_b dE_b, as sweeps correct it) and its saving on
+    corrected fuel against the conventional truck and the A-ECMS baseline (positive = less
+    fuel), the runs one after the other.
+    """
+    from .io import resolve_route, route_name
+    from .sweep import compare_strategies, option_pairs
+
+    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    _enable_x64()
+    vp = _load_vehicle(args)
+    path = resolve_route(args.route)
+    options = option_pairs(args.option) if args.option else {}
+
+    def progress(row):
+        if not args.json:
+            print(f"  {row['strategy']:<15} {row['wall_s']:6.1f} s", file=sys.stderr, flush=True)
+
+    rows = compare_strategies(str(path), vp, strategies, dt=args.dt, name=route_name(path),
+                              progress=progress, **options)
+    out = {"route": route_name(path), "file": str(path), "vehicle": str(args.vehicle),
+           "mass_kg": float(vp.mass), "battery_MJ": float(vp.E_b_max) / 1e6,
+           "initial_soc": float(vp.soc0), "dt_s": float(args.dt), "options": options,
+           "rows": [_json_safe(r) for r in rows]}
+    if args.json:
+        print(json.dumps(out))
+        return 0
+    print(f"route    {out['route']} ({path}), {rows[0]['length_m'] / 1000:.3f} km")
+    print(f"vehicle  {args.vehicle}, {out['mass_kg']:.0f} kg, battery {out['battery_MJ']:g} MJ "
+          f"starting at {100 * out['initial_soc']:g} %"
+          + (", options " + ", ".join(f"{k}={v}" for k, v in options.items()) if options else ""))
+    head = f"{'strategy':<15}" + "".join(
+        f" {h:>{int(f.lstrip('+').split('.')[0])}}" for _, h, f, _ in COMPARE_COLUMNS)
+    print(head + "  status")
+    print("-" * (len(head) + 8))
+    for r in rows:
+        cells = "".join(
+            " " + ("-".rjust(int(f.lstrip("+").split(".")[0])) if r[k] is None
+                   else format(r[k] * scale, f))
+            for k, _, f, scale in COMPARE_COLUMNS)
+        flag = " *" if r["charge_missed"] else ""
+        print(f"{r['strategy']:<15}{cells}  {r['status']}{flag}")
+    print("corr. = fuel + lambda_b dE_b (the run's first Level 2 costate); savings on corr.; "
+          "- where the reference was not run")
+    if any(r["charge_missed"] for r in rows):
+        print("* the battery ends more than 1 % of its size from where it started: "
+              "not charge sustaining")
+    return 0
+
+
+def register_compare(sub) -> None:
+    p = sub.add_parser(
+        "compare",
+        help="several strategies on one route: fuel and savings",
+        description=cmd_compare.__doc__,
+    )
+    p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
+    _common_vehicle(p)
+    _battery_args(p)
+    p.add_argument("--strategies", default="conventional,baseline,multilevel", metavar="A,B,...",
+                   help="comma-separated strategies (default conventional,baseline,multilevel; "
+                        "also multilevel-mpc, dp-bound, multilevel-eco)")
+    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
+    _option_arg(p)
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=cmd_compare)
+
+
+def _battery_args(p) -> None:
+    p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
+                   help="usable battery energy in MJ (overrides the vehicle file)")
+    p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
+                   help="starting charge, a fraction of the battery in [0, 1] (overrides the "
+                        "vehicle file)")
+
+
+def _option_arg(p) -> None:
     p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                    help="a strategy option (a field of jaxems.strategies.Options, as a sweep "
                         "file's [options] table sets it; VALUE in TOML: sustain=false, "
                         "l2_pieces=64); repeatable")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    p.set_defaults(func=cmd_simulate)
 
 
 def _common_vehicle(p) -> None:
@@ -332,7 +428,7 @@ def register_report(sub) -> None:
 
 
 SUBCOMMANDS: list[Callable] = [register_route, register_predict, register_simulate,
-                               register_sweep, register_report]
+                               register_compare, register_sweep, register_report]
 
 
 def build_parser() -> argparse.ArgumentParser:

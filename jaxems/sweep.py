@@ -775,6 +775,63 @@ def add_savings(df):
     return df
 
 
+COMPARE_STRATEGIES = ("conventional", "baseline", "multilevel")
+
+
+def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRATEGIES, *,
+                       dt: float = 1.0, mass_kg: float | None = None,
+                       battery_MJ: float | None = None, initial_soc: float | None = None,
+                       name: str | None = None, progress: Callable | None = None,
+                       **options) -> list[dict]:
+    """Several strategies on one route with one vehicle, as a sweep compares them.
+
+    route: a path or bundled name; vehicle: `VehicleParams` or a name or path; mass_kg,
+    battery_MJ, initial_soc: overrides; options: fields of `strategies.Options`, for every
+    strategy. Everything is checked before anything compiles (an unknown or repeated strategy,
+    a bad option or value: ValueError naming it). progress(row) is called after each run.
+
+    Returns one dict per strategy, in the order given: `Result.as_dict()` plus the sweep's
+    fuel_corrected_J and saving_vs_{conventional,baseline}_pct (`add_savings`: positive = less
+    fuel than the reference, on corrected fuel; None where the reference was not run or a run
+    did not finish), fuel_corrected_l_per_100km, and charge_missed (`report.off_charge`).
+    """
+    import pandas as pd
+
+    from .io import resolve_route, route_name
+    from .params import with_overrides
+    from .report import corrected_l_per_100km, off_charge
+    from .strategies import check_strategy, make_options, simulate
+
+    strategies = list(strategies)
+    if not strategies:
+        raise ValueError("strategies: none given")
+    for s in strategies:
+        check_strategy(s)
+    if len(set(strategies)) < len(strategies):
+        raise ValueError(f"strategies: each at most once (got {', '.join(strategies)})")
+    opts = make_options(None, **options)
+    vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
+    vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ, initial_soc=initial_soc)
+    path = resolve_route(route)
+    name = name or route_name(path)
+    rows = []
+    for s in strategies:
+        row = simulate(str(path), vp, s, dt=dt, options=opts, name=name).as_dict()
+        rows.append(row)
+        if progress is not None:
+            progress(row)
+    df = add_savings(pd.DataFrame(rows).assign(grid_index=0))
+    added = {"fuel_corrected_J": df["fuel_corrected_J"].to_numpy(np.float64),
+             "fuel_corrected_l_per_100km": corrected_l_per_100km(df),
+             **{f"saving_vs_{r}_pct": df[f"saving_vs_{r}_pct"].to_numpy(np.float64)
+                for r in REFERENCES}}
+    missed = (df["status"] == "ok").to_numpy() & off_charge(df["delta_Eb_J"], float(vp.E_b_max))
+    for i, row in enumerate(rows):
+        row |= {k: float(v[i]) if np.isfinite(v[i]) else None for k, v in added.items()}
+        row["charge_missed"] = bool(missed[i])
+    return rows
+
+
 def assemble(out: Path, cfg_canonical: dict | None = None):
     """All finished chunk rows of a results directory, ordered, with the savings columns.
 

@@ -201,3 +201,112 @@ def test_simulate_names_the_last_plans_level2_flags(capsys, monkeypatch):
     assert code_ == 0 and json.loads(out)["level2_status"] is None
     code_, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
     assert not any(x.startswith("Level 2") for x in out.splitlines())
+
+
+# ---------------------------------------------------------------------------------- compare
+class _Run:
+    """A fake `Result` of one strategy: what `compare_strategies` reads of it."""
+
+    def __init__(self, strategy, fuel, lam, delta, status="ok"):
+        self.d = {"route": "short_track", "strategy": strategy, "length_m": 1055.0,
+                  "trip_time_s": 153.0, "fuel_J": fuel, "fuel_l_per_100km": fuel / 4e5,
+                  "delta_Eb_J": delta, "lambda_b": lam, "status": status, "wall_s": 0.1}
+
+    def as_dict(self):
+        return dict(self.d)
+
+
+FAKE = {"conventional": (13.0e6, 0.0, 0.0), "baseline": (11.0e6, -2.2, -0.101e6),
+        "multilevel": (7.0e6, -2.0, 0.02e6)}
+
+
+def _fake_simulate(seen, status=None):
+    def fake(route, vp, strategy, **k):
+        seen.append((strategy, k))
+        return _Run(strategy, *FAKE[strategy], **({"status": status[strategy]}
+                                                  if status and strategy in status else {}))
+    return fake
+
+
+def test_compare_strategies_corrects_and_saves_as_sweeps_do(monkeypatch):
+    """`compare_strategies`: one row per strategy in the order given; corrected fuel J +
+    lambda_b dE_b (none for the conventional truck), savings 100 (F_ref - F) / F_ref on it
+    against conventional and baseline (None where the reference did not run or did not
+    finish), the 1 % charge check; options reach every run; progress sees each row."""
+    from jaxems import strategies
+    from jaxems.sweep import compare_strategies
+
+    seen, done = [], []
+    monkeypatch.setattr(strategies, "simulate", _fake_simulate(seen))
+    rows = compare_strategies("short_track", "reference_truck", ["multilevel", "conventional",
+                              "baseline"], battery_MJ=4.0, n_iter=3, progress=done.append)
+    assert [r["strategy"] for r in rows] == ["multilevel", "conventional", "baseline"]
+    assert [r["strategy"] for r in done] == ["multilevel", "conventional", "baseline"]
+    assert all(k["options"].n_iter == 3 for _, k in seen)
+    F = {s: f + lam * d for s, (f, lam, d) in FAKE.items()}  # plain: J + lambda_b dE_b
+    by = {r["strategy"]: r for r in rows}
+    for s, r in by.items():
+        assert r["fuel_corrected_J"] == pytest.approx(F[s], rel=1e-12)
+        assert r["saving_vs_conventional_pct"] == pytest.approx(
+            100 * (F["conventional"] - F[s]) / F["conventional"], rel=1e-12)
+        assert r["saving_vs_baseline_pct"] == pytest.approx(
+            100 * (F["baseline"] - F[s]) / F["baseline"], rel=1e-12)
+        assert r["fuel_corrected_l_per_100km"] == pytest.approx(
+            r["fuel_l_per_100km"] * F[s] / FAKE[s][0], rel=1e-12)
+    # |dE_b| against 1 % of the 4 MJ battery: 0.101 MJ misses, 0.02 MJ and 0 do not
+    assert [by[s]["charge_missed"] for s in FAKE] == [False, True, False]
+
+    seen.clear()
+    monkeypatch.setattr(strategies, "simulate",
+                        _fake_simulate(seen, status={"conventional": "unfinished"}))
+    rows = compare_strategies("short_track", strategies=["conventional", "multilevel"])
+    assert all(r["saving_vs_conventional_pct"] is None for r in rows)  # its reference unfinished
+    assert all(r["saving_vs_baseline_pct"] is None for r in rows)  # not run
+    assert rows[0]["charge_missed"] is False  # an unfinished run is no charge verdict
+
+
+@pytest.mark.parametrize("strategies, kw, words", [
+    (["conventional", "greedy"], {}, "unknown 'greedy'"),
+    (["baseline", "baseline"], {}, "each at most once"),
+    ([], {}, "none given"),
+    (["baseline"], {"n_iterations": 2}, "n_iterations"),
+    (["baseline"], {"mass_kg": -1.0}, "mass_kg"),
+])
+def test_compare_strategies_checks_before_running(monkeypatch, strategies, kw, words):
+    from jaxems import strategies as S
+    from jaxems.sweep import compare_strategies
+
+    monkeypatch.setattr(S, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
+    with pytest.raises(ValueError, match=words):
+        compare_strategies("short_track", strategies=strategies, **kw)
+
+
+def test_compare_cli_json_and_table(capsys):
+    """`jaxems compare`: one JSON object with the vehicle and a row per strategy; the table has
+    a line per strategy and '-' where a saving's reference was not run. (The conventional
+    truck only: its compilation is shared with the simulate tests above.)"""
+    code, out, err = run(capsys, "compare", "short_track", "--strategies", "conventional",
+                         "--mass", "25000", "--json")
+    assert code == 0, err
+    assert out.count("\n") == 1
+    d = json.loads(out)
+    assert (d["route"], d["mass_kg"], d["battery_MJ"]) == ("short_track", 25000.0, 4.0)
+    (row,) = d["rows"]
+    assert row["strategy"] == "conventional" and row["status"] == "ok"
+    assert row["saving_vs_conventional_pct"] == 0.0 and row["saving_vs_baseline_pct"] is None
+    assert row["fuel_corrected_J"] == row["fuel_J"] and row["charge_missed"] is False
+    code, out, err = run(capsys, "compare", "short_track", "--strategies", "conventional",
+                         "--mass", "25000")
+    assert code == 0 and "conventional" in err  # progress on stderr
+    line = next(x for x in out.splitlines() if x.startswith("conventional"))
+    cells = line.split()
+    assert cells[1] == f"{row['fuel_J'] / 1e6:.3f}" and "-" in cells and cells[-1] == "ok"
+
+
+def test_compare_cli_errors(capsys):
+    code, _, err = run(capsys, "compare", "short_track", "--strategies", "conventional,greedy")
+    assert code == 1 and "unknown 'greedy'" in err
+    code, _, err = run(capsys, "compare", "no_such_route", "--strategies", "conventional")
+    assert code == 1 and "no_such_route" in err
+    code, _, err = run(capsys, "compare", "short_track", "--option", "bogus=1")
+    assert code == 1 and "bogus" in err
