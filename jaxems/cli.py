@@ -283,17 +283,12 @@ def register_simulate(sub) -> None:
         help="simulate one energy-management strategy on a route",
         description=cmd_simulate.__doc__,
     )
-    p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
-    _common_vehicle(p)
-    _battery_args(p)
+    _run_args(p)
     p.add_argument("--strategy", default="multilevel", metavar="NAME",
                    help="conventional, baseline, multilevel (default), multilevel-mpc, "
                         "dp-bound, multilevel-eco")
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
     p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
                    help="multilevel iterations (default 2)")
-    _option_arg(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_simulate)
 
 
@@ -371,31 +366,29 @@ def register_compare(sub) -> None:
         help="several strategies on one route: fuel and savings",
         description=cmd_compare.__doc__,
     )
-    p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
-    _common_vehicle(p)
-    _battery_args(p)
+    _run_args(p)
     p.add_argument("--strategies", default="conventional,baseline,multilevel", metavar="A,B,...",
                    help="comma-separated strategies (default conventional,baseline,multilevel; "
                         "also multilevel-mpc, dp-bound, multilevel-eco)")
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
-    _option_arg(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_compare)
 
 
-def _battery_args(p) -> None:
+def _run_args(p) -> None:
+    """The arguments `simulate` and `compare` share: the route, the vehicle and its overrides,
+    the time step, strategy options, --json."""
+    p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
+    _common_vehicle(p)
     p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
                    help="usable battery energy in MJ (overrides the vehicle file)")
     p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
                    help="starting charge, a fraction of the battery in [0, 1] (overrides the "
                         "vehicle file)")
-
-
-def _option_arg(p) -> None:
+    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
     p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                    help="a strategy option (a field of jaxems.strategies.Options, as a sweep "
                         "file's [options] table sets it; VALUE in TOML: sustain=false, "
                         "l2_pieces=64); repeatable")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
 def _common_vehicle(p) -> None:
