@@ -25,14 +25,14 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
-from jaxems.cli import print_result  # noqa: E402
+from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
 from jaxems.report import CHARGE_SHARE, off_charge  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _list, _num  # noqa: E402  (as Table 7 reads lists and writes numbers)
+from table7 import _num  # noqa: E402  (as Table 7 reads lists and writes numbers)
 
 DEFAULT_STRATEGIES = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
 TARGET_PCT = 100 * CHARGE_SHARE  # the end-to-end check: |delta E_b| within 1 % of the battery
@@ -40,7 +40,7 @@ TARGET_PCT = 100 * CHARGE_SHARE  # the end-to-end check: |delta E_b| within 1 % 
 
 def _floats(text: str, name: str) -> list[float]:
     try:
-        vals = [float(x) for x in _list(text)]
+        vals = [float(x) for x in comma_list(text)]
     except ValueError:
         raise ValueError(f"--{name}: expected comma-separated numbers (got {text!r})") from None
     if not vals:
@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     def compute():
-        strategies = _list(args.strategies)
+        strategies = comma_list(args.strategies)
         return run_grid(args.route, _floats(args.masses, "masses"), _floats(args.socs, "socs"),
                         strategies, args.vehicle)
 

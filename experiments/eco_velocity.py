@@ -27,13 +27,13 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
-from jaxems.cli import print_result  # noqa: E402
+from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _list, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 STRATS = ("multilevel", "multilevel-eco")
@@ -140,7 +140,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/eco", help="folder of the plots (out/eco)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    routes = _list(args.routes)
+    routes = comma_list(args.routes)
     return print_result("eco_velocity", lambda: run_eco(routes, args.mass, args.dt,
                                                         args.vehicle, args.out),
                         args.json, format_table)

@@ -30,7 +30,7 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
-from jaxems.cli import print_result  # noqa: E402
+from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
 
@@ -49,11 +49,6 @@ LABELS = {"conventional": "non-hybrid", "multilevel-mpc": "MPC", "dp-bound": "dp
 
 def _log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
-
-
-def _list(text: str) -> list[str]:
-    """The items of a comma-separated option, stripped, empty ones dropped."""
-    return [x.strip() for x in text.split(",") if x.strip()]
 
 
 def _num(x):
@@ -163,7 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    strategies = _list(args.strategies)
+    strategies = comma_list(args.strategies)
     return print_result("table7", lambda: run_table(args.route, args.mass, strategies, args.dt,
                                                     args.n_iter, args.vehicle),
                         args.json, format_table)

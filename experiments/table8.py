@@ -25,14 +25,14 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
-from jaxems.cli import print_result  # noqa: E402
+from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import PAPER_STRATEGIES  # noqa: E402
 from jaxems.sweep import compare_strategies  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _list, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 DEFAULT_STRATEGIES = PAPER_STRATEGIES  # conventional, baseline, multilevel, -mpc, dp-bound
@@ -102,8 +102,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    return print_result("table8", lambda: run_table(_list(args.routes), _list(args.strategies),
-                                                    args.mass, args.dt, args.vehicle),
+    return print_result("table8", lambda: run_table(comma_list(args.routes),
+                                                    comma_list(args.strategies), args.mass,
+                                                    args.dt, args.vehicle),
                         args.json, format_table)
 
 

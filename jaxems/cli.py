@@ -54,6 +54,11 @@ def _load(args):
     return route_name(path), path, load_route(path, ds=args.ds)
 
 
+def comma_list(text: str) -> list[str]:
+    """The items of a comma-separated option, stripped, empty ones dropped."""
+    return [x.strip() for x in text.split(",") if x.strip()]
+
+
 def _print_table(pairs: list[tuple[str, str]]) -> None:
     w = max(len(k) for k, _ in pairs)
     for k, v in pairs:
@@ -318,7 +323,7 @@ def cmd_compare(args) -> int:
     from .io import resolve_route, route_name
     from .sweep import compare_strategies, option_pairs
 
-    strategies = [s.strip() for s in args.strategies.split(",") if s.strip()]
+    strategies = comma_list(args.strategies)
     _enable_x64()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
