@@ -55,11 +55,11 @@ def run_table(routes=DEFAULT_ROUTES, strategies=DEFAULT_STRATEGIES, mass_kg: flo
     vp = with_overrides(load_vehicle(vehicle), mass_kg=mass_kg)
     for route in routes:  # every route file exists and parses before anything compiles
         load_route(route)
-    rows = []
     def progress(d):
         _log(f"table8: {d['route']:<16} {d['strategy']:<15} {d['wall_s']:7.1f} s  "
              f"{d['fuel_l_per_100km']:6.2f} l/100 km  status {d['status']}")
 
+    rows = []
     for route in routes:
         for r in compare_strategies(route, vp, strategies, dt=dt, progress=progress):
             # the saving against the non-hybrid truck as the paper gives it: negative = less fuel

@@ -793,13 +793,13 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     Returns one dict per strategy, in the order given: `Result.as_dict()` plus the sweep's
     fuel_corrected_J and saving_vs_{conventional,baseline}_pct (`add_savings`: positive = less
     fuel than the reference, on corrected fuel; None where the reference was not run or a run
-    did not finish), fuel_corrected_l_per_100km, and charge_missed (`report.off_charge`).
+    did not finish), fuel_corrected_l_per_100km, and charge_missed (`report.charge_missed`).
     """
     import pandas as pd
 
     from .io import resolve_route, route_name
     from .params import with_overrides
-    from .report import corrected_l_per_100km, off_charge
+    from .report import corrected_l_per_100km
     from .strategies import check_strategy, make_options, simulate
 
     strategies = list(strategies)
@@ -820,12 +820,13 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
         rows.append(row)
         if progress is not None:
             progress(row)
-    df = add_savings(pd.DataFrame(rows).assign(grid_index=0))
+    df = add_savings(pd.DataFrame(rows).assign(grid_index=0,
+                                                battery_MJ=float(vp.E_b_max) / 1e6))
     added = {"fuel_corrected_J": df["fuel_corrected_J"].to_numpy(np.float64),
              "fuel_corrected_l_per_100km": corrected_l_per_100km(df),
              **{f"saving_vs_{r}_pct": df[f"saving_vs_{r}_pct"].to_numpy(np.float64)
                 for r in REFERENCES}}
-    missed = (df["status"] == "ok").to_numpy() & off_charge(df["delta_Eb_J"], float(vp.E_b_max))
+    missed = charge_missed(df)
     for i, row in enumerate(rows):
         row |= {k: float(v[i]) if np.isfinite(v[i]) else None for k, v in added.items()}
         row["charge_missed"] = bool(missed[i])
