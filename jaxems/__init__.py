@@ -57,7 +57,8 @@ __all__ = [
     "optimize_velocity_batch", "profile_from_speed",
     "Prediction", "Profile", "Result", "Route", "RouteError", "Split", "SwitchCostParams",
     "SweepError", "Switching", "Transition", "VehicleError", "VehicleParams", "ViterbiResult",
-    "bisect_costate", "closed_form_mode", "costate_batch", "costate_product", "dense_transition",
+    "bisect_costate", "closed_form_mode", "compare_strategies", "costate_batch",
+    "costate_product", "dense_transition",
     "eps_G", "eps_M", "guards", "hamiltonian_table", "interior_region", "level1_batch",
     "level1_full", "level1_mpc", "level2_horizon", "list_routes", "load_route", "load_sweep",
     "load_vehicle", "map_batch",
@@ -68,7 +69,8 @@ __all__ = [
 ]
 
 
-_LAZY = {"SweepError": "sweep", "load_sweep": "sweep", "run_sweep": "sweep"}
+_LAZY = {"SweepError": "sweep", "load_sweep": "sweep", "run_sweep": "sweep",
+         "compare_strategies": "sweep"}
 
 
 def __getattr__(name):  # the sweep machinery (pandas, pyarrow) loads on first use
