@@ -256,6 +256,10 @@ def test_compare_strategies_corrects_and_saves_as_sweeps_do(monkeypatch):
             r["fuel_l_per_100km"] * F[s] / FAKE[s][0], rel=1e-12)
     # |dE_b| against 1 % of the 4 MJ battery: 0.101 MJ misses, 0.02 MJ and 0 do not
     assert [by[s]["charge_missed"] for s in FAKE] == [False, True, False]
+    # the order of the strategies changes the rows' order, nothing in them
+    again = compare_strategies("short_track", "reference_truck", ["baseline", "conventional",
+                               "multilevel"], battery_MJ=4.0, n_iter=3)
+    assert {r["strategy"]: r for r in again} == by
 
     seen.clear()
     monkeypatch.setattr(strategies, "simulate",
