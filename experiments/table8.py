@@ -64,7 +64,7 @@ def run_table(routes=DEFAULT_ROUTES, strategies=DEFAULT_STRATEGIES, mass_kg: flo
         for r in compare_strategies(route, vp, strategies, dt=dt, progress=progress):
             # the saving against the non-hybrid truck as the paper gives it: negative = less fuel
             sv = r["saving_vs_conventional_pct"]
-            r["saving_pct"] = None if sv is None else -sv
+            r["saving_pct"] = None if sv is None else 0.0 - sv  # (0.0 - 0.0 is +0.0)
             rows.append({k: _num(v) if isinstance(v, float) else v for k, v in r.items()})
     paper = [{"strategy": s, "label": PAPER_LABELS[s], "fuel_l_per_100km": v[0],
               "saving_pct": v[1]} for s, v in PAPER.items()]

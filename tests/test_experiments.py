@@ -124,6 +124,10 @@ def test_table8_json_structure(capsys):
     assert [p["fuel_l_per_100km"] for p in d["paper"]] == [33.0, 31.1, 30.7]
     text = table8.format_table(d)
     assert "baseline" in text and "33.0 l/100 km" in text and "-7.0 %" in text
+    # the reference's own saving prints as +0.0 (not a negative zero)
+    conv_line = next(x for x in text.splitlines() if x.startswith("short_track") and
+                     "conventional" in x)
+    assert conv_line.split()[4] == "+0.0"
 
 
 def test_table8_bad_input_fails_before_running(capsys):
