@@ -123,3 +123,50 @@ def test_demo_runs(tmp_path):
     assert demo.main(["--out", str(tmp_path), "--level3-only"]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert "level3_short_track.png" in pngs and len(pngs) == 4
+
+
+def test_cache_dir_from_the_environment(monkeypatch, tmp_path):
+    """Where the commands keep JAX's compilation cache: $JAXEMS_CACHE_DIR (empty: none), else
+    $XDG_CACHE_HOME/jaxems/jax, else ~/.cache/jaxems/jax."""
+    from jaxems import cli
+
+    monkeypatch.setenv("JAXEMS_CACHE_DIR", str(tmp_path / "c"))
+    assert cli.cache_dir() == tmp_path / "c"
+    monkeypatch.setenv("JAXEMS_CACHE_DIR", "")
+    assert cli.cache_dir() is None
+    monkeypatch.delenv("JAXEMS_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    assert cli.cache_dir() == tmp_path / "xdg" / "jaxems" / "jax"
+    monkeypatch.delenv("XDG_CACHE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert cli.cache_dir() == tmp_path / "home" / ".cache" / "jaxems" / "jax"
+
+
+def test_commands_use_a_compilation_cache_unless_jax_has_one(monkeypatch, tmp_path):
+    """The commands' setup turns JAX's persistent cache on in `cache_dir()` (made if missing)
+    where JAX has none, and keeps one JAX has (the suite's, JAX_COMPILATION_CACHE_DIR); a
+    directory that cannot be made, or an empty JAXEMS_CACHE_DIR, leaves it off."""
+    import jax
+
+    from jaxems import cli
+
+    own = jax.config.jax_compilation_cache_dir
+    assert own  # the suite's (tests/conftest.py)
+    monkeypatch.setenv("JAXEMS_CACHE_DIR", str(tmp_path / "a" / "b"))
+    try:
+        cli._enable_x64()
+        assert jax.config.jax_compilation_cache_dir == own  # JAX's own kept
+        jax.config.update("jax_compilation_cache_dir", None)
+        cli._enable_x64()
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "a" / "b")
+        assert (tmp_path / "a" / "b").is_dir()
+        jax.config.update("jax_compilation_cache_dir", None)
+        (tmp_path / "file").write_text("")
+        monkeypatch.setenv("JAXEMS_CACHE_DIR", str(tmp_path / "file" / "sub"))
+        cli._enable_x64()
+        assert jax.config.jax_compilation_cache_dir is None
+        monkeypatch.setenv("JAXEMS_CACHE_DIR", "")
+        cli._enable_x64()
+        assert jax.config.jax_compilation_cache_dir is None
+    finally:
+        jax.config.update("jax_compilation_cache_dir", own)
