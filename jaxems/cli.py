@@ -48,13 +48,13 @@ def cache_dir() -> Path | None:
     return Path(base) / "jaxems" / "jax"
 
 
-def _enable_x64() -> None:
+def _setup_jax() -> None:
     """float64, and JAX's persistent compilation cache in `cache_dir()` unless JAX has one
     already (JAX_COMPILATION_CACHE_DIR): a command's second run loads its programs instead of
     compiling them (seconds instead of a minute); a directory that cannot be made is skipped."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_setup_jax", True)
     where = cache_dir()
     if jax.config.jax_compilation_cache_dir or where is None:
         return
@@ -97,7 +97,7 @@ def cmd_route(args) -> int:
     from .levels.velocity import predict_velocity
     from .route import route_summary
 
-    _enable_x64()
+    _setup_jax()
     name, path, route = _load(args)
     vp = _load_vehicle(args)
     pred = predict_velocity(route, vp)
@@ -168,7 +168,7 @@ def cmd_predict(args) -> int:
 
     from .levels.velocity import energy_summary, predict_velocity
 
-    _enable_x64()
+    _setup_jax()
     name, path, route = _load(args)
     vp = _load_vehicle(args)
     pred = predict_velocity(route, vp, dt=args.dt)
@@ -263,7 +263,7 @@ def cmd_simulate(args) -> int:
     check_strategy(args.strategy)  # before anything is loaded or compiled
     if args.n_iter is not None and args.n_iter < 1:
         raise CLIError(f"--n-iter: must be a whole number >= 1 (got {args.n_iter})")
-    _enable_x64()
+    _setup_jax()
     vp = _load_vehicle(args)  # mass and battery validated here
     path = resolve_route(args.route)
     options = {}
@@ -350,7 +350,7 @@ def cmd_compare(args) -> int:
     from .sweep import compare_strategies, option_pairs
 
     strategies = comma_list(args.strategies)
-    _enable_x64()
+    _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
     options = option_pairs(args.option) if args.option else {}

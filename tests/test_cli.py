@@ -154,19 +154,19 @@ def test_commands_use_a_compilation_cache_unless_jax_has_one(monkeypatch, tmp_pa
     assert own  # the suite's (tests/conftest.py)
     monkeypatch.setenv("JAXEMS_CACHE_DIR", str(tmp_path / "a" / "b"))
     try:
-        cli._enable_x64()
+        cli._setup_jax()
         assert jax.config.jax_compilation_cache_dir == own  # JAX's own kept
         jax.config.update("jax_compilation_cache_dir", None)
-        cli._enable_x64()
+        cli._setup_jax()
         assert jax.config.jax_compilation_cache_dir == str(tmp_path / "a" / "b")
         assert (tmp_path / "a" / "b").is_dir()
         jax.config.update("jax_compilation_cache_dir", None)
         (tmp_path / "file").write_text("")
         monkeypatch.setenv("JAXEMS_CACHE_DIR", str(tmp_path / "file" / "sub"))
-        cli._enable_x64()
+        cli._setup_jax()
         assert jax.config.jax_compilation_cache_dir is None
         monkeypatch.setenv("JAXEMS_CACHE_DIR", "")
-        cli._enable_x64()
+        cli._setup_jax()
         assert jax.config.jax_compilation_cache_dir is None
     finally:
         jax.config.update("jax_compilation_cache_dir", own)
