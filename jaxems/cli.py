@@ -54,7 +54,7 @@ def _setup_jax() -> None:
     compiling them (seconds instead of a minute); a directory that cannot be made is skipped."""
     import jax
 
-    jax.config.update("jax_setup_jax", True)
+    jax.config.update("jax_enable_x64", True)
     where = cache_dir()
     if jax.config.jax_compilation_cache_dir or where is None:
         return
