@@ -48,13 +48,12 @@ def cache_dir() -> Path | None:
     return Path(base) / "jaxems" / "jax"
 
 
-def _setup_jax() -> None:
-    """float64, and JAX's persistent compilation cache in `cache_dir()` unless JAX has one
-    already (JAX_COMPILATION_CACHE_DIR): a command's second run loads its programs instead of
-    compiling them (seconds instead of a minute); a directory that cannot be made is skipped."""
+def use_compilation_cache() -> None:
+    """JAX's persistent compilation cache in `cache_dir()` unless JAX has one already
+    (JAX_COMPILATION_CACHE_DIR): a command's second run loads its programs instead of compiling
+    them (seconds instead of a minute); a directory that cannot be made is skipped."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)
     where = cache_dir()
     if jax.config.jax_compilation_cache_dir or where is None:
         return
@@ -63,6 +62,14 @@ def _setup_jax() -> None:
     except OSError:
         return
     jax.config.update("jax_compilation_cache_dir", str(where))
+
+
+def _setup_jax() -> None:
+    """float64 and the compilation cache (`use_compilation_cache`)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    use_compilation_cache()
 
 
 def _load_vehicle(args):

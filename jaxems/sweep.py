@@ -1124,7 +1124,10 @@ def _set_aside_if_other(cfg: SweepConfig, out: Path) -> None:
 def cmd_sweep(args) -> int:
     """`jaxems sweep`: run a fleet sweep (routes x grid x strategies) into a directory."""
     if args.workers is None and args.scheduler is None:
+        from .cli import use_compilation_cache
+
         _in_process_devices(args.devices)
+        use_compilation_cache()  # (a local cluster's workers share DIR/jax-cache instead)
     summary = run_sweep(args.sweep_file, args.out, workers=args.workers,
                         scheduler=args.scheduler, resume=args.resume, quiet=args.quiet,
                         report=not args.no_report)

@@ -170,3 +170,26 @@ def test_commands_use_a_compilation_cache_unless_jax_has_one(monkeypatch, tmp_pa
         assert jax.config.jax_compilation_cache_dir is None
     finally:
         jax.config.update("jax_compilation_cache_dir", own)
+
+
+@pytest.mark.parametrize("workers, called", [(None, True), (2, False)])
+def test_an_in_process_sweep_uses_the_compilation_cache(monkeypatch, workers, called):
+    """`jaxems sweep` in this process turns the commands' compilation cache on; a local
+    cluster's workers share the results directory's instead (`sweep._executor`)."""
+    import argparse
+
+    from jaxems import cli, sweep
+
+    calls = []
+    monkeypatch.setattr(cli, "use_compilation_cache", lambda: calls.append(1))
+    monkeypatch.setattr(sweep, "_in_process_devices", lambda n: None)
+
+    class Summary:
+        def text(self):
+            return "done"
+
+    monkeypatch.setattr(sweep, "run_sweep", lambda *a, **k: Summary())
+    args = argparse.Namespace(workers=workers, scheduler=None, devices=None, sweep_file="x.toml",
+                              out=None, resume=False, quiet=True, no_report=True)
+    assert sweep.cmd_sweep(args) == 0
+    assert bool(calls) is called
