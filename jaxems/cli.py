@@ -41,10 +41,14 @@ CACHE_DIR_ENV = "JAXEMS_CACHE_DIR"
 
 def cache_dir() -> Path | None:
     """Where the commands keep JAX's persistent compilation cache: $JAXEMS_CACHE_DIR (set and
-    empty: none), else $XDG_CACHE_HOME/jaxems/jax, else ~/.cache/jaxems/jax."""
+    empty: none), else $XDG_CACHE_HOME/jaxems/jax, else ~/.cache/jaxems/jax (none without a
+    home directory)."""
     if CACHE_DIR_ENV in os.environ:
         return Path(os.environ[CACHE_DIR_ENV]).expanduser() if os.environ[CACHE_DIR_ENV] else None
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    try:
+        base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    except RuntimeError:  # no home directory to be found
+        return None
     return Path(base) / "jaxems" / "jax"
 
 
