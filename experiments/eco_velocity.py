@@ -28,12 +28,13 @@ import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
 from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 STRATS = ("multilevel", "multilevel-eco")

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import re
 import sys
 import time
 
@@ -31,6 +30,7 @@ import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
 from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
 
@@ -121,12 +121,6 @@ def run_table(route: str = "short_track", mass_kg: float = 25000.0,
                 r[k] = _num(v)
     return {"table": 7, "route": rows[0]["route"] if rows else route, "vehicle": vehicle,
             "mass_kg": float(mass_kg), "dt_s": float(dt), "rows": rows}
-
-
-def _f(x, fmt: str) -> str:
-    """x formatted with fmt (e.g. '8.3f'); a right-aligned '-' of the same width for None."""
-    width = int(re.match(r"[+-]?(\d*)", fmt).group(1) or 0)
-    return "-".rjust(width) if x is None else format(x, fmt)
 
 
 def format_table(out: dict) -> str:

@@ -26,13 +26,14 @@ from jax import config
 config.update("jax_enable_x64", True)
 
 from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import PAPER_STRATEGIES  # noqa: E402
 from jaxems.sweep import compare_strategies  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table7 import _f, _log, _num  # noqa: E402  (the same formatting as Table 7)
+from table7 import _log, _num  # noqa: E402  (the same formatting as Table 7)
 
 DEFAULT_ROUTES = ("LongHaul", "RegionalDelivery", "UrbanDelivery")
 DEFAULT_STRATEGIES = PAPER_STRATEGIES  # conventional, baseline, multilevel, -mpc, dp-bound

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -94,6 +95,12 @@ def _load(args):
 def comma_list(text: str) -> list[str]:
     """The items of a comma-separated option, stripped, empty ones dropped."""
     return [x.strip() for x in text.split(",") if x.strip()]
+
+
+def format_or_dash(x, fmt: str) -> str:
+    """x formatted with fmt (e.g. '8.3f'); a right-aligned '-' of the same width for None."""
+    width = int(re.match(r"[+-]?(\d*)", fmt).group(1) or 0)
+    return "-".rjust(width) if x is None else format(x, fmt)
 
 
 def _print_table(pairs: list[tuple[str, str]]) -> None:
@@ -357,22 +364,22 @@ def cmd_compare(args) -> int:
     corrected fuel against the conventional truck and the A-ECMS baseline (positive = less
     fuel), the runs one after the other.
     """
-    from .io import resolve_route, route_name
+    from .io import resolve_route
     from .sweep import compare_strategies, option_pairs
 
     strategies = comma_list(args.strategies)
     _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
-    options = option_pairs(args.option) if args.option else {}
+    options = option_pairs(args.option)
 
     def progress(row):
         if not args.json:
             print(f"  {row['strategy']:<15} {row['wall_s']:6.1f} s", file=sys.stderr, flush=True)
 
-    rows = compare_strategies(str(path), vp, strategies, dt=args.dt, name=route_name(path),
-                              progress=progress, **options)
-    out = {"route": route_name(path), "file": str(path), "vehicle": str(args.vehicle),
+    rows = compare_strategies(str(path), vp, strategies, dt=args.dt, progress=progress,
+                              **options)
+    out = {"route": rows[0]["route"], "file": str(path), "vehicle": str(args.vehicle),
            "mass_kg": float(vp.mass), "battery_MJ": float(vp.E_b_max) / 1e6,
            "initial_soc": float(vp.soc0), "dt_s": float(args.dt), "options": options,
            "rows": [_json_safe(r) for r in rows]}
@@ -383,15 +390,13 @@ def cmd_compare(args) -> int:
     print(f"vehicle  {args.vehicle}, {out['mass_kg']:.0f} kg, battery {out['battery_MJ']:g} MJ "
           f"starting at {100 * out['initial_soc']:g} %"
           + (", options " + ", ".join(f"{k}={v}" for k, v in options.items()) if options else ""))
-    head = f"{'strategy':<15}" + "".join(
-        f" {h:>{int(f.lstrip('+').split('.')[0])}}" for _, h, f, _ in COMPARE_COLUMNS)
+    head = f"{'strategy':<15}" + "".join(f" {h:>{len(format_or_dash(None, f))}}"
+                                          for _, h, f, _ in COMPARE_COLUMNS)
     print(head + "  status")
     print("-" * (len(head) + 8))
     for r in rows:
-        cells = "".join(
-            " " + ("-".rjust(int(f.lstrip("+").split(".")[0])) if r[k] is None
-                   else format(r[k] * scale, f))
-            for k, _, f, scale in COMPARE_COLUMNS)
+        cells = "".join(" " + format_or_dash(None if r[k] is None else r[k] * scale, f)
+                        for k, _, f, scale in COMPARE_COLUMNS)
         flag = " *" if r["charge_missed"] else ""
         print(f"{r['strategy']:<15}{cells}  {r['status']}{flag}")
     print("corr. = fuel + lambda_b dE_b (the run's first Level 2 costate); savings on corr.; "

@@ -123,15 +123,18 @@ def test_simulate_errors_python_dash_m(args, words):
 class _FakeRun:
     """What `strategies.simulate` returns, as far as the CLI reads it."""
 
-    def __init__(self, delta_Eb_J, status="ok", level2=-1):
-        self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": 7e6,
-                       "fuel_l_per_100km": 18.6, "fuel_corrected_J": 7e6, "delta_Eb_J": delta_Eb_J,
-                       "Eb_min_J": 1e6, "Eb_max_J": 3e6, "mode_switches": 4, "gear_switches": 7,
-                       "lambda_b": -2.0, "max_speed_shortfall_mps": 0.5, "status": status,
+    def __init__(self, delta_Eb_J, status="ok", level2=-1, strategy="baseline", fuel_J=7e6,
+                 lambda_b=-2.0):
+        self.strategy = strategy
+        self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": fuel_J,
+                       "fuel_l_per_100km": 18.6, "fuel_corrected_J": fuel_J,
+                       "delta_Eb_J": delta_Eb_J, "Eb_min_J": 1e6, "Eb_max_J": 3e6,
+                       "mode_switches": 4, "gear_switches": 7, "lambda_b": lambda_b,
+                       "max_speed_shortfall_mps": 0.5, "status": status,
                        "level2_status": level2, "wall_s": 0.1}
 
     def as_dict(self):
-        return {"route": "short_track", "strategy": "baseline", **self.fields}
+        return {"route": "short_track", "strategy": self.strategy, **self.fields}
 
 
 @pytest.mark.parametrize("delta, status, missed", [
@@ -204,18 +207,6 @@ def test_simulate_names_the_last_plans_level2_flags(capsys, monkeypatch):
 
 
 # ---------------------------------------------------------------------------------- compare
-class _Run:
-    """A fake `Result` of one strategy: what `compare_strategies` reads of it."""
-
-    def __init__(self, strategy, fuel, lam, delta, status="ok"):
-        self.d = {"route": "short_track", "strategy": strategy, "length_m": 1055.0,
-                  "trip_time_s": 153.0, "fuel_J": fuel, "fuel_l_per_100km": fuel / 4e5,
-                  "delta_Eb_J": delta, "lambda_b": lam, "status": status, "wall_s": 0.1}
-
-    def as_dict(self):
-        return dict(self.d)
-
-
 FAKE = {"conventional": (13.0e6, 0.0, 0.0), "baseline": (11.0e6, -2.2, -0.101e6),
         "multilevel": (7.0e6, -2.0, 0.02e6)}
 
@@ -223,8 +214,9 @@ FAKE = {"conventional": (13.0e6, 0.0, 0.0), "baseline": (11.0e6, -2.2, -0.101e6)
 def _fake_simulate(seen, status=None):
     def fake(route, vp, strategy, **k):
         seen.append((strategy, k))
-        return _Run(strategy, *FAKE[strategy], **({"status": status[strategy]}
-                                                  if status and strategy in status else {}))
+        fuel, lam, delta = FAKE[strategy]
+        return _FakeRun(delta, (status or {}).get(strategy, "ok"), strategy=strategy,
+                        fuel_J=fuel, lambda_b=lam)
     return fake
 
 
