@@ -1503,6 +1503,8 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             P_b = float(rs.P_b[0, mode1, gear1])
         else:
             P_b = 0.0
+        # never more motor power than the engine at its lowest leaves to the requirement
+        P_b = min(P_b, _pb_of_pm_state(f, c, max(-c.m_lim, P_req - c.e_lo)))
         P_b = P_b if traction > 0 else 0.0
         pb_lo = _pb_of_pm_state(f, c, max(-c.m_lim, P_dem - c.e_hi))
         pb_hi = _pb_of_pm_state(f, c, c.m_lim)

@@ -531,3 +531,28 @@ def test_engine_speed_nodes_interpolate_the_moving_steps_by_position():
     assert np.all(np.diff(s) > 0) and (~m & np.asarray(PRED.mask)).sum() >= 10  # stops
     want = [np.interp(x, s, ws) for x in np.asarray(PRED.profile.s)]
     np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+def test_commanded_motor_power_never_fights_the_service_brakes():
+    """A plan's battery power is its own step's, not the plant's: commanded to drive the motor
+    on every step (+80 kW), the plant still never drives it while the service brakes take
+    power, and where it brakes in a motor-only state (not switching) the motor recuperates
+    instead."""
+    base = run(VP, -2.2).trace
+    n = N_PLANT
+    cmds = (np.asarray(base.mode), np.asarray(base.gear), np.full(n, -2.2), np.full(n, 80e3),
+            np.ones(n, bool))
+    _, res = run_script(VP, tuple(jnp.asarray(a) for a in cmds))
+    tr = res.trace
+    P_m, P_brake, P_d = (np.asarray(x) for x in (tr.P_m, tr.P_brake, tr.P_d))
+    mode = np.asarray(tr.mode)
+    driving = P_m > 1.0
+    assert driving.sum() > 20  # the command holds where the demand takes it
+    braking = P_brake < -1.0
+    assert braking.sum() > 5
+    assert not np.any(driving & braking)
+    gear = np.asarray(tr.gear)
+    held = np.r_[False, (mode[1:] == mode[:-1]) & (gear[1:] == gear[:-1])]  # not opened
+    regen = (mode == ps.MM) & (P_d < -1.0) & held
+    assert regen.sum() > 0 and np.all(P_m[regen] < 0.0)
+    assert rel_balance(res, VP) < 1e-3
