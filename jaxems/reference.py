@@ -1112,30 +1112,35 @@ def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
     """Each step's battery energy change (J) of a plan, as the plant moves it: loop over steps.
 
     A step whose (mode, gear) differs from the last one's (a gear change in the open mode is
-    none) draws the synchronisation energy through the motor, and for its open driveline time
-    (dt_M at a mode switch, dt_G at a gear switch, the larger at both; at most the step) moves
-    no battery power, except driving in M_m (the motor makes the lost speed up after the
+    none) draws the synchronisation energy through the motor. The plant asks for the next
+    step's state, so the driveline opens in the step before the new state's (dt_M at a mode
+    switch, dt_G at a gear switch, the larger at both; at most the step): that step moves no
+    battery power, except driving into M_m (the motor makes the lost speed up after the
     switch). Steps outside `mask` change nothing."""
     from .plant import sync_energy
 
     P_d, v, P_b = (np.asarray(x, float) for x in (P_d, v, P_b))
     mode, gear, mask = np.asarray(mode), np.asarray(gear), np.asarray(mask)
     P_bi = P_b + float(vp.beta) * P_b * P_b  # eq. 7
-    out = np.zeros(P_d.shape[0])
-    for k in range(P_d.shape[0]):
+    T = P_d.shape[0]
+    opens = np.zeros(T)  # seconds the switch into step k's state opens the driveline
+    sync = np.zeros(T)
+    for k in range(1, T):
+        m0, g0, m1, g1 = int(mode[k - 1]), int(gear[k - 1]), int(mode[k]), int(gear[k])
+        msw = m1 != m0
+        gsw = g1 != g0 and m1 != MO
+        opens[k] = max(float(vp.dt_M) if msw else 0.0, float(vp.dt_G) if gsw else 0.0)
+        if (msw or gsw) and float(vp.has_motor) > 0.5:
+            sync[k] = float(sync_energy(vp, m0, g0, m1, g1, v[k])) / float(vp.eta_m)
+    out = np.zeros(T)
+    for k in range(T):
         if not mask[k]:
             continue
-        open_s, sync = 0.0, 0.0
-        if k > 0:
-            m0, g0, m1, g1 = int(mode[k - 1]), int(gear[k - 1]), int(mode[k]), int(gear[k])
-            msw = m1 != m0
-            gsw = g1 != g0 and m1 != MO
-            open_s = max(float(vp.dt_M) if msw else 0.0, float(vp.dt_G) if gsw else 0.0)
-            if (msw or gsw) and float(vp.has_motor) > 0.5:
-                sync = float(sync_energy(vp, m0, g0, m1, g1, v[k])) / float(vp.eta_m)
-        driving_mm = mode[k] == MM and P_d[k] > 0  # M_m makes the lost speed up
+        nxt = min(k + 1, T - 1)
+        open_s = opens[k + 1] if k + 1 < T else 0.0
+        driving_mm = mode[nxt] == MM and P_d[k] > 0  # M_m makes the lost speed up
         keep = 1.0 if driving_mm else 1.0 - min(open_s / dt, 1.0)
-        out[k] = -P_bi[k] * dt * keep - sync
+        out[k] = -P_bi[k] * dt * keep - sync[k]
     return out
 
 

@@ -84,14 +84,18 @@ def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
                                     jnp.asarray(P_b), 1.0))
     plain = -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b)))
     np.testing.assert_allclose(got, np.where(mask, plain, 0.0), rtol=1e-12)
-    # a braking step that switches recuperates nothing
-    k = int(np.argmax(np.where(mask[1:], -np.asarray(PRED.P_d)[1:], -np.inf))) + 1
-    assert float(PRED.P_d[k]) < 0
+    # braking, the step before a switch recuperates nothing (the plant opens the driveline
+    # there), the switch's step recuperates in full less the synchronisation energy
+    brk = mask & (np.asarray(PRED.P_d) < 0)
+    both = brk[1:-1] & brk[:-2]
+    k = int(np.argmax(np.where(both, -np.asarray(PRED.P_d)[1:-1], -np.inf))) + 1
+    assert both[k - 1]
     g = np.full(T, 5, np.int32)
     g[k:] = 4
     e = np.asarray(S.steps_energy(VP, PRED, jnp.zeros(T, jnp.int32), jnp.asarray(g),
                                   jnp.full(T, -100e3), 1.0))
-    assert e[k] <= 0.0 < e[k - 1]
+    assert e[k - 1] <= 0.0 < e[k - 2]
+    assert 0.0 < e[k] < e[k - 2]
 
 
 def piece_energy(P_b):
