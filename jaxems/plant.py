@@ -503,7 +503,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # recuperates the plant's braking (without this, on Urban Delivery at 20 t the plant drove
     # the motor against its service brakes on 49 steps, 0.71 MJ braked away, and regenerated
     # only the plan's braking at each braking onset: the plant fell 0.2-0.8 MJ behind its plan)
-    P_b = jnp.minimum(P_b, ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_req - r.e_lo)))
+    P_b = jnp.minimum(P_b, ps.pb_engine_lowest(vp, r, P_req))
     P_b = jnp.where(traction > 0, P_b, 0.0)
     # battery power range of this state at this demand, and the battery's energy limits
     pb_lo = ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))

@@ -130,6 +130,13 @@ def pb_of_pm(vp: VehicleParams, r: Ranges, P_m):
     return jnp.where(r.cm, jnp.where(d > 0, d / vp.eta_m, d * vp.eta_m), 0.0)
 
 
+def pb_engine_lowest(vp: VehicleParams, r: Ranges, P_d):
+    """Battery power whose motor output, with the engine at the lowest of its range (its drag;
+    0 when open), meets the demand P_d, within the motor's range: the most the motor may
+    deliver without the service brakes taking any of it."""
+    return pb_of_pm(vp, r, jnp.clip(P_d - r.e_lo, -r.m_lim, r.m_lim))
+
+
 def pm_of_pb(vp: VehicleParams, r: Ranges, P_b):
     """Motor output for battery power P_b (eq. 4); zero when the motor is open."""
     return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
@@ -150,7 +157,7 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     stat_dis = -_safe_div(lam + k * vp.eta_m / vp.eta_e, two_bl)
     stat_chg = -_safe_div(lam + k / (vp.eta_e * vp.eta_m), two_bl)
     kink_fuel = pb_of_pm(vp, r, P_d - _safe_div(pe0, k))
-    kink_brake = pb_of_pm(vp, r, P_d - e_lo)
+    kink_brake = pb_engine_lowest(vp, r, P_d)
     vertex = jnp.full_like(lo, -0.5 / vp.beta)
     # a conventional truck (no motor) idles its engine with the clutch open: idle fuel
     idle = jnp.where(~ce & (vp.has_motor < 0.5), idle_fuel_power(vp), 0.0)
