@@ -188,13 +188,16 @@ def test_battery_path_is_the_plain_sum_where_no_limit_is_reached():
     assert set(np.unique(pid)) == {0, 1}
 
 
-def test_trim_meets_the_pieces_ends_within_a_small_battery():
+@pytest.mark.parametrize("target", [(-0.1e6, 0.05e6), (0.17e6, -0.1e6)])
+def test_trim_meets_the_pieces_ends_within_a_small_battery(target):
     """With a battery that the plan leaves within its first piece, the trim meets each piece's
-    end as the plant would hold the battery (a loop over the steps), where the range allows."""
+    end as the plant would hold the battery (a loop over the steps), where the range allows;
+    where it does not, it comes as close as the range allows (within 0.1 % of the battery; the
+    second case asks the first piece for more than its M_c steps can charge)."""
     E_max = 0.35e6
     vp = VP.replace(E_b_max=E_max)
     E0 = float(vp.soc0) * E_max
-    target = np.asarray([-0.1e6, 0.05e6])
+    target = np.asarray(target)
     dE0 = step_energy(np.asarray(R1.P_b))
     plain = E0 + np.cumsum(dE0)
     assert plain.min() < 0 or plain.max() > E_max  # the case: the plan leaves the limits
@@ -209,12 +212,39 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery():
 
     (e, goal), (e_lo, _), (e_hi, _) = (held_end(P) for P in (got, np.where(adj, lo, got),
                                                               np.where(adj, hi, got)))
-    assert e_hi[0] <= goal[0] <= e_lo[0]  # the case: the first piece's end is reachable
+    reach = (e_hi <= goal) & (goal <= e_lo)
+    assert reach[0] == (target[0] < 0)  # the cases: the first piece's end reachable or not
     for p in range(2):
-        if e_hi[p] <= goal[p] <= e_lo[p]:
+        if reach[p]:
             assert abs(e[p] - goal[p]) < 1.0, (p, e[p], goal[p])
+        else:  # the nearer end of the range, as far as it moves the piece's end
+            near = e_lo[p] if goal[p] > e_lo[p] else e_hi[p]
+            assert abs(e[p] - near) <= 1e-3 * E_max + 1.0, (p, e[p], near, goal[p])
     # untrimmed, the plan misses it: the plant would hold the battery at a limit on the way
     assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4
+
+
+plan_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
+                                                  jnp.asarray(-2.0), PRED, 1.0,
+                                                  S.make_options(None), (PID, target)))
+
+
+def test_plan_expects_its_own_battery_path_across_pieces():
+    """A plan's E_ref is its own steps' battery energy from the start, held within the limits
+    (a loop), not restarted where the targets put each piece: with a small battery whose first
+    piece the plan cannot end where the targets put it, the restarted path would jump at the
+    second piece's start by that miss, and the plant's feedback would chase the jump."""
+    E_max = 0.35e6
+    vp = VP.replace(E_b_max=E_max)
+    E0 = float(vp.soc0) * E_max
+    target = np.asarray([0.17e6, -0.1e6])
+    plan = plan_vp(vp, jnp.asarray(target))
+    dE = step_energy(np.asarray(plan.P_b))
+    pid = np.asarray(PID)
+    own = ref_battery_path(E0, E_max, dE, np.zeros_like(pid), np.zeros(1))[0]
+    np.testing.assert_allclose(np.asarray(plan.E_ref), own, rtol=1e-9, atol=1e-6)
+    restarted = ref_battery_path(E0, E_max, dE, pid, target)[0]
+    assert abs(restarted[MID] - own[MID]) > 1e4  # the case: the first piece misses its end
 
 
 energy = xla.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
