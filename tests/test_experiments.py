@@ -1,5 +1,5 @@
-"""experiments/table7.py, table8.py, traces.py and charge_grid.py: JSON structure, row
-arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py, charge_grid.py and resolution.py: JSON
+structure, row arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -171,3 +171,39 @@ def test_charge_grid_json_and_the_baselines_balance(capsys):
     assert "--socs: expected comma-separated numbers" in capsys.readouterr().err
     assert grid.main(["--socs", "1.5", "--strategies", "baseline"]) == 1
     assert "soc0: must be in [0, 1]" in capsys.readouterr().err
+
+
+def test_resolution_summary_against_plain_arithmetic(capsys):
+    """resolution: corrected fuel per strategy and mass (the runs of charge_grid at half
+    charge), medians, spreads and the checks' gaps mass by mass; the gaps' arithmetic on
+    made-up rows, the JSON on the 25 t baseline (shared compilation) at two masses."""
+    res = _script("resolution")
+    masses = [1.0, 2.0, 3.0]
+    fuel = {"multilevel": [103.0, 101.0, 110.0], "dp-bound": [100.0, 100.0, 100.0],
+            "multilevel-mpc": [103.0, 102.01, 99.0]}
+    rows = [{"strategy": s, "mass_kg": m, "fuel_corrected_J": f}
+            for s, v in fuel.items() for m, f in zip(masses, v, strict=True)]
+    strategies, gaps = res.summarise(rows, masses)
+    assert strategies["multilevel"]["median_J"] == 103.0
+    assert strategies["multilevel"]["spread_pct"] == pytest.approx(100 * 9.0 / 103.0)
+    g = gaps["multilevel vs dp-bound"]
+    np.testing.assert_allclose(g["gap_pct"], [3.0, 1.0, 10.0])
+    assert (g["median_pct"], g["min_pct"], g["max_pct"]) == pytest.approx((3.0, 1.0, 10.0))
+    np.testing.assert_allclose(gaps["multilevel-mpc vs multilevel"]["gap_pct"],
+                               [0.0, 1.0, -10.0])
+    assert res.summarise(rows[:3], masses)[1] == {}  # one strategy: no gap
+
+    code = res.main(["--strategies", "baseline", "--offsets", "0,50", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0
+    d = json.loads(out)
+    assert d["masses"] == [25000.0, 25050.0] and d["gaps"] == {}
+    runs = [simulate("short_track", with_overrides(load_vehicle(), mass_kg=m), "baseline")
+            for m in d["masses"]]
+    np.testing.assert_allclose(d["strategies"]["baseline"]["fuel_corrected_J"],
+                               [r["fuel_corrected_J"] for r in runs], rtol=1e-12)
+    assert "+50 kg" in res.format_table(d)
+    assert res.main(["--offsets", "0,-5", "--strategies", "baseline"]) == 1
+    assert "--offsets: expected distinct kilograms >= 0" in capsys.readouterr().err
+    assert res.main(["--mass", "1,2", "--strategies", "baseline"]) == 1
+    assert "--mass: expected one number" in capsys.readouterr().err
