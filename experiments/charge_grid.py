@@ -98,16 +98,23 @@ def format_table(out: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def parser(doc: str, strategies) -> argparse.ArgumentParser:
+    """The options this script shares with resolution.py: --route, --vehicle, --strategies
+    (default: `strategies`), --json."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--route", default="short_track", help="route file or bundled name")
     ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
+    ap.add_argument("--strategies", default=",".join(strategies),
+                    help="comma-separated strategies")
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    return ap
+
+
+def main(argv=None) -> int:
+    ap = parser(__doc__, DEFAULT_STRATEGIES)
     ap.add_argument("--masses", default="25000", help="comma-separated masses in kg (25000)")
     ap.add_argument("--socs", default="0.1,0.3,0.5,0.7,0.9",
                     help="comma-separated starting charges, fractions of the battery")
-    ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
-                    help="comma-separated strategies")
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
     def compute():

@@ -19,7 +19,6 @@ stdout; progress goes to stderr.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 from pathlib import Path
@@ -31,7 +30,7 @@ config.update("jax_enable_x64", True)
 from jaxems.cli import comma_list, print_result  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from charge_grid import _floats, run_grid  # noqa: E402
+from charge_grid import _floats, parser, run_grid  # noqa: E402
 
 DEFAULT_STRATEGIES = ("multilevel", "dp-bound", "multilevel-mpc")
 DEFAULT_OFFSETS = (0.0, 5.0, 10.0, 20.0, 50.0, 100.0)
@@ -88,15 +87,10 @@ def format_table(out: dict) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--route", default="short_track", help="route file or bundled name")
-    ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
+    ap = parser(__doc__, DEFAULT_STRATEGIES)
     ap.add_argument("--mass", default="25000", help="the mass in kg (25000)")
     ap.add_argument("--offsets", default=",".join(format(o, "g") for o in DEFAULT_OFFSETS),
                     help="comma-separated kilograms added to the mass")
-    ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
-                    help="comma-separated strategies")
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
 
     def compute():
