@@ -399,11 +399,11 @@ def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) ->
     the plant's drift (Regional Delivery, 30 t, 4 MJ: 1.9 MJ at a piece's start; 0.34 MJ
     with the trim at its range's end)."""
     lam = jnp.broadcast_to(lam, pred.v.shape)
-    pid, target = pieces if pieces is not None else single_piece(lam.shape[0], lam.dtype)
+    whole = single_piece(lam.shape[0], lam.dtype)
+    pid, target = pieces if pieces is not None else whole
     P_b = trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt)
     return Plan(mode=mode, gear=gear, lam=lam, P_b=P_b,
-                E_ref=battery_path(vp, steps_energy(vp, pred, mode, gear, P_b, dt),
-                                   *single_piece(lam.shape[0], lam.dtype))[0],
+                E_ref=battery_path(vp, steps_energy(vp, pred, mode, gear, P_b, dt), *whole)[0],
                 k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype))
 
 
