@@ -3,7 +3,7 @@
 # lent GPU machine; no install: its python3 has JAX with CUDA, numpy, optax, pandas, pyarrow,
 # pytest and hypothesis).
 #   bash benchmarks/gpu.sh PHASE [OUT]
-#   PHASE: info | throughput | mpc | batch | float64 | tests | suite
+#   PHASE: info | throughput | multilevel | determinism | mpc | batch | float64 | tests | suite
 # JSON files go to OUT (default $OUT, else out/gpu); progress lines on stderr. Compare a run's
 # fuel with a CPU run's: python benchmarks/compare_fuel.py GPU.json CPU.json
 set -u
@@ -22,6 +22,16 @@ case $phase in
       --keep-fuel > "$out/gpu_b1024_conv_base.json"
     timeout 330 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
       --keep-fuel > "$out/gpu_b1024_multilevel.json"
+    ;;
+  multilevel)  # the throughput phase's multilevel run alone
+    timeout 330 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
+      --keep-fuel > "$out/gpu_b1024_multilevel.json"
+    ;;
+  determinism)  # the same with XLA's deterministic GPU ops (scatter-adds in a fixed order):
+    # does a configuration's result still depend on its place in the batch? (compare_fuel.py)
+    XLA_FLAGS="--xla_gpu_deterministic_ops=true${XLA_FLAGS:+ $XLA_FLAGS}" timeout 330 $B \
+      --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 --keep-fuel \
+      > "$out/gpu_b1024_multilevel_deterministic.json"
     ;;
   mpc)  # LongHaul's batch of 1024 did not finish its compilation and first call in 400 s
     timeout 290 $B --route RegionalDelivery --batch 256 --chunk 256 --strategies multilevel-mpc \
