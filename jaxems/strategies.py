@@ -303,7 +303,7 @@ def battery_path(vp, dE, pid, target):
 def piece_error(dE, pid, target):
     """(K,) each piece's summed energy change minus its target (dE: (T,), pid: (T,),
     target: (K,), as `battery_path`)."""
-    return jax.ops.segment_sum(dE, pid, target.shape[0]) - target
+    return l2.piece_sums(dE, pid, target.shape[0]) - target
 
 
 def held_piece_error(vp, dE, pid, target):
@@ -419,7 +419,7 @@ def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
     T = c2.lam.shape[0]
     K = c2.lam_lo.shape[0]
     pid = l2.piece_ids(c2.boundaries, T)
-    jump = jnp.abs(jax.ops.segment_sum(c2.dE_plus - c2.dE_minus, pid, K)) > tol
+    jump = jnp.abs(l2.piece_sums(c2.dE_plus - c2.dE_minus, pid, K)) > tol
     lam_lo, lam_hi = c2.lam_lo[pid], c2.lam_hi[pid]
     side = jnp.where(c2.sel > 0.5, lam_lo - gap, lam_hi + gap)
     return jnp.clip(jnp.where(jump[pid], side, c2.lam), l2.LAM_BRACKET[0], l2.LAM_BRACKET[1])

@@ -428,14 +428,14 @@ def test_default_chunk_on_a_cpu_and_on_an_accelerator(monkeypatch):
                            memory=60 * GB) == int(S.ACCEL_MEMORY_SHARE * 60 * GB // (2 * per))
     assert S.default_chunk("baseline", backend="gpu", memory=60 * GB) > c
     assert S.default_chunk("dp-bound", backend="gpu", memory=GB // 100) == 1  # never 0
-    monkeypatch.setattr(S, "device_memory", lambda: None)  # a device that does not say
-    assert S.default_chunk("multilevel", backend="gpu") == S.ACCEL_CHUNK
-    with pytest.raises(ValueError, match="strategy"):
-        S.default_chunk("eco", backend="gpu", memory=GB)
     if jax.default_backend() == "cpu":  # a CPU's memory is not the chunk's limit
         assert S.device_memory() is None
     else:
         assert S.device_memory() > 0
+    monkeypatch.setattr(S, "device_memory", lambda: None)  # a device that does not say
+    assert S.default_chunk("multilevel", backend="gpu") == S.ACCEL_CHUNK
+    with pytest.raises(ValueError, match="strategy"):
+        S.default_chunk("eco", backend="gpu", memory=GB)
 
 
 @pytest.mark.parametrize("strategy", ["conventional", "baseline"])

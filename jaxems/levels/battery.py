@@ -190,6 +190,20 @@ def piece_ids(bnd, T):
     return jnp.clip(pid, 0, K - 1)
 
 
+def piece_sums(x, pid, K: int):
+    """(K,) the sum of x (T,) over each piece; pid (T,) the piece of each step, non-decreasing
+    in [0, K) (`piece_ids`); an empty piece sums to 0.
+
+    The sums are differences of one cumulative sum at the pieces' ends, in an order the program
+    fixes: a float scatter-add (`jax.ops.segment_sum`) runs on a GPU as atomic additions in no
+    fixed order, so its sums, and the bisections' decisions on them, differed between places
+    of a batch and between runs. They round as the pieces' paths do (`_piece_paths`)."""
+    C = jnp.concatenate([jnp.zeros((1,), x.dtype), jnp.cumsum(x)])
+    n = jnp.zeros((K,), jnp.int32).at[pid].add(1)  # steps per piece (integer: exact)
+    ends = jnp.cumsum(n)
+    return C[ends] - C[ends - n]
+
+
 def _seg_cummax(x, start):
     """Running max of x restarting where start is True."""
 
@@ -324,7 +338,7 @@ def _piece_ends(dE, pid, bnd, E_start, sat, E_max):
     C = jnp.concatenate([jnp.zeros((1,), dE.dtype), jnp.cumsum(dE)])
     C_start = C[jnp.clip(bnd[:K], 0, T)]
     S = E_start[pid] + C[1:] - C_start[pid]
-    end_free = E_start + jax.ops.segment_sum(dE, pid, num_segments=K)
+    end_free = E_start + C[jnp.clip(bnd[1:], 0, T)] - C_start  # `piece_sums`, by bnd
     peak = jax.ops.segment_max(S - E_max, pid, num_segments=K)  # -inf on empty pieces
     end_refl = end_free - jnp.maximum(peak, 0.0)
     return jnp.where(sat, end_refl, end_free)
