@@ -1445,12 +1445,14 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     steps = []
     for k in range(n_steps):
         # where the reference is: the step whose span holds s (step ends at or before s)
-        j = min(max(int(np.searchsorted(tk.ref_s[1:], s, side="right")), 0), T - 1)
+        # (at s moved past rounding: `plant.at_or_past`, float64)
+        s_q = s + max(1e-6, 8 * np.finfo(np.float64).eps * abs(s))
+        j = min(max(int(np.searchsorted(tk.ref_s[1:], s_q, side="right")), 0), T - 1)
         span = tk.ref_s[j + 1] - tk.ref_s[j]
         frac = min(max((s - tk.ref_s[j]) / span, 0.0), 1.0) if span > 0 else 0.0
         v_here, v_next = v_ref_at(j, frac), v_ref_at(j + 1, frac)
         # the next stop not yet served
-        i_node = min(max(int(np.searchsorted(tk.grid_s, s + 1e-6, side="right")) - 1, 0),
+        i_node = min(max(int(np.searchsorted(tk.grid_s, s_q, side="right")) - 1, 0),
                      tk.grid_s.shape[0] - 1)
         i_next = i_node if tk.stop_s[i_node] > served + 1e-6 else i_node + 1
         s_stop, t_stop = float(tk.stop_s[i_next]), float(tk.stop_t[i_next])

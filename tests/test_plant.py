@@ -288,7 +288,8 @@ _track = functools.cache(lambda: P.make_track(ROUTE, PRED))  # after the module 
 def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     """(j, frac) against NumPy's search on the step ends ref_s[1:]: the Level 3 step whose
     span holds s (the last of several steps that end at s, as where the reference stands),
-    clipped to the grid."""
+    clipped to the grid; s within rounding (1e-6 m) short of a step's end is at its end
+    (`plant.at_or_past`): one ulp short of each step end tried, too."""
     track = _track()
     ref_s = np.asarray(track.ref_s).copy()
     for k in stands:  # standing steps: runs of equal positions
@@ -296,9 +297,11 @@ def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     ref_s = np.maximum.accumulate(ref_s)
     tr = track._replace(ref_s=jnp.asarray(ref_s)).with_search_blocks()
     T = ref_s.size - 1
-    for x in [*pos, *ref_s[[0, 1, 5, T // 2, T]]]:
+    ends = ref_s[[0, 1, 5, T // 2, T]]
+    for x in [*pos, *ends, *np.nextafter(ends, -np.inf)]:
         j, frac = ref_position(tr, jnp.asarray(x))
-        j_np = min(max(int(np.searchsorted(ref_s[1:], x, side="right")), 0), T - 1)
+        x_q = x + max(1e-6, 8 * np.finfo(np.float64).eps * abs(x))
+        j_np = min(max(int(np.searchsorted(ref_s[1:], x_q, side="right")), 0), T - 1)
         assert int(j) == j_np, x
         d = ref_s[j_np + 1] - ref_s[j_np]
         f_np = min(max((x - ref_s[j_np]) / d, 0.0), 1.0) if d > 0 else 0.0
