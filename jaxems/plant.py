@@ -308,13 +308,14 @@ def block_search(a, a_c, v, side: str):
 
 
 def at_or_past(s):
-    """Position s (m) moved forward by a rounding tolerance, for the searches that ask which
-    step or node the vehicle has reached: a plant that follows the reference exactly reaches
-    each step's end up to rounding, an ulp short or past, and counted an ulp short it asked
-    for the plan's state one step late. Which side it landed on differed between compilations
-    (the conventional truck on the short track, float64: 0.52 % more fuel on a GPU than on the
-    CPU from one gear switch a step earlier). 1e-6 m, or 8 ulps where that is more (float32
-    far along a route); nothing a vehicle drives in a step."""
+    """Position s (m) moved forward by a rounding tolerance, for what asks which step or node
+    the vehicle has reached (the searches; whether it is past the last traction): a plant
+    that follows the reference exactly reaches each step's end up to rounding, an ulp short
+    or past, and counted an ulp short it asked for the plan's state one step late. Which side
+    it landed on differed between compilations (the conventional truck on the short track,
+    float64: 0.52 % more fuel on a GPU than on the CPU from one gear switch a step earlier).
+    1e-6 m, or 8 ulps where that is more (float32 far along a route); nothing a vehicle drives
+    in a step."""
     return s + jnp.maximum(1e-6, 8 * jnp.finfo(jnp.result_type(s)).eps * jnp.abs(s))
 
 
@@ -526,7 +527,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # past the reference's last traction, charge sustaining is all the battery still serves:
     # it stores up to the energy the trip started with (never forced to discharge), the
     # service brakes take the rest
-    E_ceil = jnp.where(s0 >= track.final_s,
+    E_ceil = jnp.where(at_or_past(s0) >= track.final_s,
                        jnp.maximum(vp.soc0 * vp.E_b_max, E_avail),
                        vp.E_b_max)
     pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - E_ceil) / dt))

@@ -1517,7 +1517,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         pb_hi = _pb_of_pm_state(f, c, c.m_lim)
         E_avail = E_b - E_sync_b
         pb_hi = min(pb_hi, _pb_of_pbi(f, E_avail / dt))
-        E_ceil = max(f.soc0 * f.E_b_max, E_avail) if s >= final_s else f.E_b_max
+        E_ceil = max(f.soc0 * f.E_b_max, E_avail) if s_q >= final_s else f.E_b_max
         pb_lo = max(pb_lo, _pb_of_pbi(f, (E_avail - E_ceil) / dt))
         P_b = min(max(P_b, min(pb_lo, pb_hi)), pb_hi)
         if traction > 0:
