@@ -47,7 +47,7 @@ a TOML value (`--option sustain=false`, `--option n_iter=3`). The JSON lists the
 With --json one object on stdout:
 
     {"route": .., "batch": .., "precision": .., "devices": [..], "chunk": .., "machine": {..},
-     "code": {"commit": .., "jaxems_dirty": ..}, "command": ..,
+     "code": {"commit": .., "jaxems_dirty": .., "jaxems_sha256": ..}, "command": ..,
      "strategies": {NAME: {"configs_per_s": .., "compile_s": .., "peak_rss_MB": ..,
        "median_s": .., "s_per_config": .., "cpu_s_per_config": .., "times_s": [..], ..,
        ["by_devices": {"1": {..}, "2": {..}}, "speedup_vs_1_device": ..,]
@@ -67,6 +67,7 @@ Timings are wall-clock on a shared machine: compare ratios measured in one run, 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
@@ -261,8 +262,20 @@ def run_spec(spec: dict, in_process: bool) -> dict:
     return res
 
 
+def source_hash(package: Path) -> str:
+    """SHA-256 (12 hex digits) of a package's files: their paths relative to it and their
+    bytes, in sorted order, caches left out. It names the code measured where git cannot (a
+    copy of a working tree whose .git is not the tree's, as on a lent GPU machine)."""
+    h = hashlib.sha256()
+    for f in sorted(p for p in package.rglob("*") if p.is_file()
+                    and "__pycache__" not in p.parts and p.suffix != ".pyc"):
+        h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes() + b"\0")
+    return h.hexdigest()[:12]
+
+
 def code_version() -> dict:
-    """The git commit of the tree measured and whether jaxems/ had uncommitted changes."""
+    """The git commit of the tree measured, whether jaxems/ had uncommitted changes, and the
+    hash of jaxems/'s files (`source_hash`)."""
     root = Path(__file__).resolve().parents[1]
 
     def git(*a):
@@ -273,7 +286,8 @@ def code_version() -> dict:
             return ""
 
     return {"commit": git("rev-parse", "--short", "HEAD"),
-            "jaxems_dirty": bool(git("status", "--porcelain", "--", "jaxems"))}
+            "jaxems_dirty": bool(git("status", "--porcelain", "--", "jaxems")),
+            "jaxems_sha256": source_hash(root / "jaxems")}
 
 
 def _public(res: dict, keep_fuel: bool) -> dict:

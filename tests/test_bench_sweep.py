@@ -30,6 +30,23 @@ def test_a_bad_option_is_named(pair, says):
     assert "bench_sweep" in str(e.value)
 
 
+def test_source_hash_names_the_files_and_their_bytes(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        (d / "sub" / "__pycache__").mkdir(parents=True)
+        (d / "x.py").write_text("x = 1\n")
+        (d / "sub" / "y.py").write_text("y = 2\n")
+    (b / "sub" / "__pycache__" / "y.cpython-311.pyc").write_bytes(b"cache")
+    h = bs.source_hash(a)
+    assert len(h) == 12 and h == bs.source_hash(b)  # caches left out
+    (b / "x.py").write_text("x = 2\n")
+    assert bs.source_hash(b) != h  # a byte changed
+    (b / "x.py").write_text("x = 1\n")
+    (b / "sub" / "y.py").rename(b / "y.py")
+    assert bs.source_hash(b) != h  # the same bytes under another path
+    assert bs.code_version()["jaxems_sha256"] == bs.source_hash(_PATH.parents[1] / "jaxems")
+
+
 _cpath = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_fuel.py"
 _cspec = importlib.util.spec_from_file_location("compare_fuel", _cpath)
 cf = importlib.util.module_from_spec(_cspec)
