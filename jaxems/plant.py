@@ -431,8 +431,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
 
     # --- target: follow the reference, stop exactly at the next stop, stand for its duration
     N = track.grid_s.shape[0]
-    i_node = jnp.clip(block_search(track.grid_s, track.grid_c, at_or_past(s0), "right") - 1,
-                      0, N - 1)
+    s_at = at_or_past(s0)  # the node reached, and below whether past the last traction
+    i_node = jnp.clip(block_search(track.grid_s, track.grid_c, s_at, "right") - 1, 0, N - 1)
     i_next = jnp.where(track.stop_s[i_node] > st.served + 1e-6, i_node, i_node + 1)
     s_stop = track.stop_s[i_next]
     t_stop = track.stop_t[i_next]
@@ -527,7 +527,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # past the reference's last traction, charge sustaining is all the battery still serves:
     # it stores up to the energy the trip started with (never forced to discharge), the
     # service brakes take the rest
-    E_ceil = jnp.where(at_or_past(s0) >= track.final_s,
+    E_ceil = jnp.where(s_at >= track.final_s,
                        jnp.maximum(vp.soc0 * vp.E_b_max, E_avail),
                        vp.E_b_max)
     pb_lo = jnp.maximum(pb_lo, _pb_of_pbi(vp, (E_avail - E_ceil) / dt))
