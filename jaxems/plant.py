@@ -520,7 +520,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     P_b = jnp.minimum(P_b, ps.pb_engine_lowest(vp, r, P_req))
     P_b = jnp.where(traction > 0, P_b, 0.0)
     # battery power range of this state at this demand, and the battery's energy limits
-    pb_lo = ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_dem - r.e_hi))
+    pb_lo = ps.pb_engine_highest(vp, r, P_dem)
     pb_hi = ps.pb_of_pm(vp, r, r.m_lim)
     E_avail = st.E_b - E_sync_b
     pb_hi = jnp.minimum(pb_hi, _pb_of_pbi(vp, E_avail / dt))

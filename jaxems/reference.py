@@ -1409,6 +1409,11 @@ def ref_track(route: Route, pred, end_cap: bool = True) -> SimpleNamespace:
                            stop_t=np.array(stop_t), length=length, final_s=float(final_s))
 
 
+def ref_at_or_past(s: float) -> float:
+    """`plant.at_or_past` in float64: s moved past rounding (1e-6 m, or 8 ulps where more)."""
+    return s + max(1e-6, 8 * np.finfo(np.float64).eps * abs(s))
+
+
 def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0: int,
               gear0: int):
     """The plant (`plant.run_plant`) as a loop over its steps, under a scripted controller.
@@ -1445,8 +1450,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     steps = []
     for k in range(n_steps):
         # where the reference is: the step whose span holds s (step ends at or before s)
-        # (at s moved past rounding: `plant.at_or_past`, float64)
-        s_q = s + max(1e-6, 8 * np.finfo(np.float64).eps * abs(s))
+        s_q = ref_at_or_past(s)
         j = min(max(int(np.searchsorted(tk.ref_s[1:], s_q, side="right")), 0), T - 1)
         span = tk.ref_s[j + 1] - tk.ref_s[j]
         frac = min(max((s - tk.ref_s[j]) / span, 0.0), 1.0) if span > 0 else 0.0

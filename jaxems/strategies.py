@@ -349,7 +349,7 @@ def trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt, n_bisect: int
     lambda_b per joule. A piece without M_c steps keeps its residual. Returns P_b: (T,)."""
     r = jax.vmap(lambda m, g, v: pl.state_ranges(vp, m, g, v))(mode, gear, pred.v)
     adj = pred.mask & (mode == ps.MC) & r.ok
-    lo = jnp.minimum(ps.pb_of_pm(vp, r, jnp.maximum(-r.m_lim, pred.P_d - r.e_hi)), P_b)
+    lo = jnp.minimum(ps.pb_engine_highest(vp, r, pred.P_d), P_b)
     hi = jnp.maximum(ps.pb_engine_lowest(vp, r, pred.P_d), P_b)
     K = target.shape[0]
     energy = plan_energy(vp, pred, mode, gear, dt)

@@ -300,8 +300,8 @@ def test_ref_position_is_the_step_that_contains_the_position(pos, stands):
     ends = ref_s[[0, 1, 5, T // 2, T]]
     for x in [*pos, *ends, *np.nextafter(ends, -np.inf)]:
         j, frac = ref_position(tr, jnp.asarray(x))
-        x_q = x + max(1e-6, 8 * np.finfo(np.float64).eps * abs(x))
-        j_np = min(max(int(np.searchsorted(ref_s[1:], x_q, side="right")), 0), T - 1)
+        j_np = min(max(int(np.searchsorted(ref_s[1:], R.ref_at_or_past(x), side="right")), 0),
+                   T - 1)
         assert int(j) == j_np, x
         d = ref_s[j_np + 1] - ref_s[j_np]
         f_np = min(max((x - ref_s[j_np]) / d, 0.0), 1.0) if d > 0 else 0.0

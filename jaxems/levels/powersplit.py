@@ -137,6 +137,13 @@ def pb_engine_lowest(vp: VehicleParams, r: Ranges, P_d):
     return pb_of_pm(vp, r, jnp.clip(P_d - r.e_lo, -r.m_lim, r.m_lim))
 
 
+def pb_engine_highest(vp: VehicleParams, r: Ranges, P_d):
+    """Battery power whose motor output, with the engine at the top of its range, meets the
+    demand P_d, no lower than the motor's limit allows: the most the motor may charge while
+    the engine and it still deliver P_d (the lower end of `pb_engine_lowest`'s range)."""
+    return pb_of_pm(vp, r, jnp.maximum(-r.m_lim, P_d - r.e_hi))
+
+
 def pm_of_pb(vp: VehicleParams, r: Ranges, P_b):
     """Motor output for battery power P_b (eq. 4); zero when the motor is open."""
     return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
