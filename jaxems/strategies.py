@@ -883,8 +883,8 @@ class MpcParams(NamedTuple):
     grade: Any
     mask: Any
     w: Any  # (T + h,) engine speed assumed by Level 2 (constant, as iteration 0)
-    gears: Any  # ((T + h,) gear, (T + h,) ok): Level 2's gears at w (`select_gears`), sliced
-    # for each window (the selection is step by step)
+    gears: Any  # Level 2's steps at their gears at w (`battery.step_model`: gear, ok and the
+    # lambda-free step table, (T + h,) each), sliced for each window (both are step by step)
     end: Any  # () index of the last valid step
     E_target: Any  # () E_b at the end of the route (charge sustaining)
     dt: Any
@@ -976,7 +976,7 @@ def mpc_params(vp, pred: l3.Prediction, track: pl.Track, dt, opts: Options,
     P_d, v, w = padf(pred.P_d), padf(pred.v), padf(mpc_omega(vp, pred))
     mask = jnp.concatenate([pred.mask, jnp.zeros(h, bool)])
     return MpcParams(P_d=P_d, v=v, grade=padf(pred.grade), mask=mask, w=w,
-                     gears=l2.select_gears(vp, P_d, v, w, mask), end=end,
+                     gears=l2.step_model(vp, P_d, v, w, mask), end=end,
                      E_target=mpc_end_target(vp, track, opts),
                      dt=jnp.asarray(dt, pred.v.dtype), switch=params)
 

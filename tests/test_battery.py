@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import itertools
 
+import jax
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -22,11 +23,10 @@ from jaxems import xla
 from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
-from jaxems.reference import ref_dp, ref_end, ref_gears
+from jaxems.reference import ref_dp, ref_end, ref_gears, ref_steps
 
 VP = load_vehicle()
 W1100 = 1100 * RPM
-_mgs = xla.jit(mode_gear_split)
 _steps = xla.jit(b.level2_steps)
 
 
@@ -40,22 +40,57 @@ def make_route(vp, segs, T=None):
 
 
 # -------------------------------------------------------------------------------- kernels
-def test_modes_at_gear_equals_full_table():
-    rng = np.random.default_rng(0)
-    f = xla.jit(b.modes_at_gear)
-    for _ in range(12):
-        P_d, v = rng.uniform(-150e3, 300e3), rng.uniform(0.5, 25)
-        lam, g = rng.uniform(-4, -0.5), int(rng.integers(0, 12))
-        full, one = _mgs(VP, P_d, v, lam), f(VP, P_d, v, g, lam)
-        np.testing.assert_array_equal(np.asarray(full.H)[:, g], np.asarray(one.H))
-        np.testing.assert_array_equal(np.asarray(full.P_b)[:, g], np.asarray(one.P_b))
+_pass = xla.jit(b.table_pass)
+_table = xla.jit(b.step_table)
+_mgs_steps = xla.jit(jax.vmap(mode_gear_split, in_axes=(None, 0, 0, 0)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**16), conventional=st.booleans())
+def test_level2_steps_are_the_full_tables_best_mode_at_the_gear(seed, conventional):
+    """Level 2's step (the lambda-free part tabled once, `step_table`) against the minimum of
+    `mode_gear_split` (every candidate evaluated at the costate) over the modes at the step's
+    gear, and against the NumPy brute force (`reference.ref_steps`); costates either side of
+    zero, a truck with and without a motor."""
+    rng = np.random.default_rng(seed)
+    vp = VP.replace(has_motor=0.0) if conventional else VP
+    T = 64
+    P_d, v = rng.uniform(-250e3, 400e3, T), rng.uniform(0.0, 27.0, T)
+    gear, lam = rng.integers(0, 12, T), rng.uniform(-6.0, 0.5, T)
+    ok = rng.random(T) < 0.9
+    got = _steps(vp, P_d, v, gear, ok, lam, DT_H)
+    sp = _mgs_steps(vp, P_d, v, lam)
+    H = np.asarray(sp.H)[np.arange(T), :, gear]  # (T, 4) at the step's gear
+    m = np.argmin(H, axis=1)
+    use = ok & np.isfinite(H[np.arange(T), m])
+    P_b = np.where(use, np.asarray(sp.P_b)[np.arange(T), m, gear], 0.0)
+    E_f = np.where(use, np.asarray(sp.P_f)[np.arange(T), m, gear], 0.0) * DT_H
+    # a clear best mode (ties at a guard may go either way up to rounding)
+    Hs = np.sort(H, axis=1)
+    with np.errstate(invalid="ignore"):  # inf - inf where one mode or none is feasible
+        clear = ~use | ~(Hs[:, 1] - Hs[:, 0] <= 1e-9 * np.abs(Hs[:, 0]) + 1e-6)
+    assert np.sum(clear & use) >= 8  # random gears: many steps have no feasible mode
+    np.testing.assert_array_equal(np.asarray(got.mode)[clear & use], m[clear & use])
+    np.testing.assert_allclose(np.asarray(got.P_b)[clear], P_b[clear], rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(got.E_f)[clear], E_f[clear], rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(got.dE), -np.asarray(pt.battery_internal(
+        vp, np.asarray(got.P_b))) * DT_H, rtol=1e-12, atol=1e-6)
+    ref = ref_steps(vp, P_d, v, gear, ok, lam, DT_H)
+    assert np.all((np.asarray(got.mode) == ref.mode) | ~clear | ~use)
+    np.testing.assert_allclose(np.asarray(got.E_f)[clear], ref.E_f[clear], rtol=1e-6, atol=1.0)
+    np.testing.assert_allclose(np.asarray(got.dE)[clear], ref.dE[clear], rtol=1e-6, atol=1.0)
+    # a bisection's pass reads the table: the same dE and E_f (another program: up to an ulp)
+    dE, E_f = _pass(vp, _table(vp, P_d, v, gear), ok, lam, DT_H)
+    np.testing.assert_allclose(np.asarray(dE), np.asarray(got.dE), rtol=1e-12, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(E_f), np.asarray(got.E_f), rtol=1e-12, atol=1e-9)
 
 
 @settings(max_examples=20, deadline=None)
 @given(j=st.integers(0, 110), seed=st.integers(0, 2**16))
 def test_gears_of_a_window_are_the_routes_sliced(j, seed):
-    """The gear rule is step by step, so a receding horizon may slice the whole route's
-    (`strategies.MpcParams.gears`); and the kernels given those gears give the same result.
+    """The gear rule and the step table are step by step, so a receding horizon may slice the
+    whole route's (`strategies.MpcParams.gears`); and the kernels given those give the same
+    result.
     (One window length: each new shape would compile the kernels again.)"""
     rng = np.random.default_rng(seed)
     T, n = 150, 40
@@ -68,8 +103,12 @@ def test_gears_of_a_window_are_the_routes_sliced(j, seed):
     np.testing.assert_array_equal(np.asarray(ok)[sl], np.asarray(ok_w))
     args = (VP, P_d[sl], v[sl], w[sl], mask[sl], 1.0, 0.5 * VP.E_b_max)
     given_g = (np.asarray(gear)[sl], np.asarray(ok)[sl])
+    # and the route's step model (gears and the lambda-free table, `step_model`), sliced
+    given_m = jax.tree.map(lambda a: np.asarray(a)[sl], _model(VP, P_d, v, w, mask))
     for a, b_ in ((_horizon(*args), _horizon(*args, gears=given_g)),
-                  (_costate(*args), _costate(*args, gears=given_g))):
+                  (_costate(*args), _costate(*args, gears=given_g)),
+                  (_horizon(*args), _horizon(*args, gears=given_m)),
+                  (_costate(*args), _costate(*args, gears=given_m))):
         for x, y in zip(a, b_, strict=True):
             x, y = np.asarray(x), np.asarray(y)
             if np.issubdtype(x.dtype, np.floating):  # equal on a CPU; a GPU's two programs
@@ -98,6 +137,7 @@ def test_piece_sums_equal_a_loop_over_the_pieces(K, seed):
 
 _piece_sums = xla.jit(b.piece_sums, static_argnums=2)
 _gears = xla.jit(b.select_gears)
+_model = xla.jit(b.step_model)
 _horizon = xla.jit(functools.partial(b.horizon_kernel, n_iter=20, max_pieces=2))
 _costate = xla.jit(functools.partial(b.costate_kernel, n_iter=20, max_pieces=2))
 

@@ -8,9 +8,12 @@ and free. Per step k the Hamiltonian (eq. 53)
 
 is minimised over the four modes in the gear G_k by the Level 1 kernel of
 `jaxems.levels.powersplit` (no physics is repeated here), which gives the battery power P_b,k
-and  E_b(k+1) = E_b(k) - P_bi(P_b,k) dt  (eq. 52). Since dlambda_b/dt = 0 (eq. 54), lambda_b is
-constant between constraint activations and the problem is a boundary value problem in
-lambda_b alone.
+and  E_b(k+1) = E_b(k) - P_bi(P_b,k) dt  (eq. 52). What does not depend on lambda_b (the
+modes' ranges, and fuel and battery power at the candidates other than the two stationary
+points) is computed once per route (`step_table`), so that each pass of a bisection evaluates
+only the combined mode's stationary points and compares. Since dlambda_b/dt = 0 (eq. 54),
+lambda_b is constant between constraint activations and the problem is a boundary value
+problem in lambda_b alone.
 
 Gear rule: at every step the gear is the one whose shaft speed (`powertrain.shaft_speeds`) is
 nearest to omega_k (absolute difference in rad/s) among the gears in which some mode meets the
@@ -89,7 +92,8 @@ import numpy as np
 from .. import powertrain as pt
 from ..params import VehicleParams, check_vehicle
 from ..xla import jit
-from .powersplit import mode_gear_split, modes_at_gear
+from . import powersplit as ps
+from .powersplit import mode_gear_split
 
 # ----------------------------------------------------------------------------- status bit flags
 OK = 0
@@ -158,26 +162,129 @@ def select_gears(vp: VehicleParams, P_d, v, w, mask):
     return gear, any_feas & mask
 
 
-def _step(vp, P_d, v, gear, ok, lam, dt):
-    sp = modes_at_gear(vp, P_d, v, gear, lam)
-    m = jnp.argmin(sp.H)
-    use = ok & jnp.isfinite(sp.H[m])
-    P_b = jnp.where(use, sp.P_b[m], 0.0)
-    dE = -pt.battery_internal(vp, P_b) * dt
-    E_f = jnp.where(use, sp.P_f[m], 0.0) * dt
-    P_m = jnp.where(use, sp.P_m[m], 0.0)
-    return Level2Steps(P_b=P_b, dE=dE, E_f=E_f, P_m=P_m, mode=m)
+class StepTable(NamedTuple):
+    """The Level 2 model of every step at its gear, the part that does not depend on lambda_b
+    (`step_table`): what a pass at new costates reads instead of computing the split again
+    (`level2_steps`, `table_pass`). Every field has a leading axis T.
+
+    P_d: (T,) demand (W); combined, motor: `powersplit.Setup` of the combined and motor-only
+    modes (the combined mode's stationary candidates depend on lambda_b); P_f_c, P_bi_c: (T, 6)
+    fuel and internal battery power (W) of the combined mode's candidates that do not depend on
+    lambda_b (`Setup.fixed`); P_bi_m: (T, 6) those of motor-only, whose fuel is P_f_m: (T,) for
+    every candidate (none, or the idling engine's); P_f_e, P_f_o: (T,) the fuel of engine-only
+    and open, whose battery power is 0; feasible: (T, 4) bool per mode.
+    """
+
+    P_d: jax.Array
+    combined: ps.Setup
+    motor: ps.Setup
+    P_f_c: jax.Array
+    P_bi_c: jax.Array
+    P_bi_m: jax.Array
+    P_f_m: jax.Array
+    P_f_e: jax.Array
+    P_f_o: jax.Array
+    feasible: jax.Array
+
+
+def _table_step(vp, P_d, v, gear):
+    w = pt.shaft_speeds(vp, v)[gear]
+
+    def one(mode):  # the mode's setup, and (P_f, P_bi) of its lambda-free candidates
+        s = ps.mode_setup(vp, P_d, w, ps.ENGINE_CONNECTED[mode], ps.MOTOR_CONNECTED[mode],
+                          gear == 0)
+        pw = [ps.mode_powers(vp, s, P_d, c) for c in s.fixed]
+        return (s, jnp.stack([x[3] for x in pw]),
+                jnp.stack([pt.battery_internal(vp, x[0]) for x in pw]))
+
+    (c, f_c, b_c), (e, f_e, _), (m, f_m, b_m), (o, f_o, _) = (one(i) for i in range(ps.N_MODES))
+    # engine-only and open: the motor open, the interval is {0} and every candidate P_b = 0;
+    # motor-only: the engine open, every candidate burns the same (`mode_powers`: idle)
+    return StepTable(
+        P_d=P_d, combined=c, motor=m, P_f_c=f_c, P_bi_c=b_c, P_bi_m=b_m, P_f_m=f_m[0],
+        P_f_e=f_e[0], P_f_o=f_o[0],
+        feasible=jnp.stack([c.feasible, e.feasible, m.feasible, o.feasible]),
+    )
+
+
+def step_table(vp: VehicleParams, P_d, v, gear) -> StepTable:
+    """`StepTable` of the steps P_d, v, gear: (T,) (the gears of `select_gears`)."""
+    return jax.vmap(_table_step, in_axes=(None, 0, 0, 0))(vp, P_d, v, gear)
+
+
+def _table_one(vp, t: StepTable, ok, lam, dt) -> Level2Steps:
+    """One step of the Level 2 model at costate lam: every mode's H minimised over the
+    candidates of `powersplit._split_one` in its order (ties to the first), then over the modes
+    (ties to the lowest index, as `optimal_mode_gear`)."""
+
+    def evaluate(c):  # a stationary candidate of the combined mode: (P_b, P_f, P_bi)
+        c, _, _, P_f = ps.mode_powers(vp, t.combined, t.P_d, c)
+        return c, P_f, pt.battery_internal(vp, c)
+
+    z = jnp.zeros_like(t.P_d)
+    fixed_c = [(t.combined.fixed[i], t.P_f_c[i], t.P_bi_c[i]) for i in range(6)]
+    per_mode = (
+        ps.candidates(fixed_c, [evaluate(c) for c in ps.stationary(vp, t.combined, lam)]),
+        [(z, t.P_f_e, z)],
+        # no fuel to trade: H = P_f_m - lam P_bi is least at the interval's end or the loss
+        # parabola's vertex, both lambda-free (the stationary points, the combined mode's, never
+        # beat them)
+        [(c, t.P_f_m, b) for c, b in zip(t.motor.fixed, t.P_bi_m, strict=True)],
+        [(z, t.P_f_o, z)],
+    )
+    # each mode's best candidate, then the best mode. At exact ties (a guard) XLA may evaluate
+    # the comparisons once per output, rounding H = P_f - lam P_bi with or without a fused
+    # multiply-add, so that the fields come from two candidates of equal H (as in
+    # `mode_gear_split`; seen only with the table folded as a constant)
+    best = [ps.running_min([(c, f, b, f - lam * b) for c, f, b in cands]) for cands in per_mode]
+    P_b, P_f, P_bi, H, mode = ps.running_min(
+        [(c, f, b, jnp.where(t.feasible[m], h, jnp.inf), jnp.int32(m))
+         for m, (c, f, b, h) in enumerate(best)], key=3)
+    use = ok & jnp.isfinite(H)
+    P_b = jnp.where(use, P_b, 0.0)
+    setup = jax.tree.map(lambda a, b: jnp.where(mode == ps.MC, a, b), t.combined, t.motor)
+    P_m = jnp.where(use & ((mode == ps.MC) | (mode == ps.MM)), ps.pm_of_pb(vp, setup.r, P_b), 0.0)
+    return Level2Steps(P_b=P_b, dE=-jnp.where(use, P_bi, 0.0) * dt,
+                       E_f=jnp.where(use, P_f, 0.0) * dt, P_m=P_m, mode=mode)
+
+
+def steps_of_table(vp: VehicleParams, tab: StepTable, ok, lam, dt) -> Level2Steps:
+    """`Level2Steps` at costate lam: () or (T,) from the steps' `StepTable`; ok: (T,) bool."""
+    lam = jnp.broadcast_to(lam, jnp.shape(ok))
+    return jax.vmap(_table_one, in_axes=(None, 0, 0, 0, None))(vp, tab, ok, lam, dt)
 
 
 def level2_steps(vp: VehicleParams, P_d, v, gear, ok, lam, dt) -> Level2Steps:
-    """Solve the Level 2 model step by step at costate lam: () or (T,). P_d, v, gear, ok: (T,)."""
-    lam = jnp.broadcast_to(lam, jnp.shape(P_d))
-    return jax.vmap(_step, in_axes=(None, 0, 0, 0, 0, 0, None))(vp, P_d, v, gear, ok, lam, dt)
+    """Solve the Level 2 model step by step at costate lam: () or (T,). P_d, v, gear, ok: (T,).
+    The minimisation is `powersplit.mode_gear_split`'s at the step's gear, its lambda-free part
+    computed once (`step_table`), so that a bisection's passes (`table_pass`) evaluate only the
+    combined mode's two stationary points and compare (0.11 against 0.26 ms a pass over
+    LongHaul, float32, 4 configurations vmapped, one core)."""
+    return steps_of_table(vp, step_table(vp, P_d, v, gear), ok, lam, dt)
 
 
-def _pass(vp, P_d, v, gear, ok, lam_steps, dt):
-    s = level2_steps(vp, P_d, v, gear, ok, lam_steps, dt)
+def table_pass(vp: VehicleParams, tab: StepTable, ok, lam, dt):
+    """(dE, E_f) of `steps_of_table` (the rest is not computed)."""
+    s = steps_of_table(vp, tab, ok, lam, dt)
     return s.dE, s.E_f
+
+
+class StepModel(NamedTuple):
+    """Level 2's steps at their gears: gear, ok (`select_gears`) and their `StepTable`; a
+    receding horizon slices the whole route's (the selection and the table are step by
+    step)."""
+
+    gear: jax.Array
+    ok: jax.Array
+    table: StepTable
+
+
+def step_model(vp: VehicleParams, P_d, v, w, mask, gears=None) -> StepModel:
+    """`StepModel` of the steps; gears: (gear, ok) or a `StepModel` already at hand."""
+    if isinstance(gears, StepModel):
+        return gears
+    gear, ok = select_gears(vp, P_d, v, w, mask) if gears is None else gears
+    return StepModel(gear, ok, step_table(vp, P_d, v, gear))
 
 
 # --------------------------------------------------------------------------- piecewise helpers
@@ -337,11 +444,14 @@ def _piece_ends(dE, pid, bnd, E_start, sat, E_max):
     T = dE.shape[0]
     C = jnp.concatenate([jnp.zeros((1,), dE.dtype), jnp.cumsum(dE)])
     C_start = C[jnp.clip(bnd[:K], 0, T)]
-    S = E_start[pid] + C[1:] - C_start[pid]
     end_free = E_start + C[jnp.clip(bnd[1:], 0, T)] - C_start  # `piece_sums`, by bnd
-    peak = jax.ops.segment_max(S - E_max, pid, num_segments=K)  # -inf on empty pieces
-    end_refl = end_free - jnp.maximum(peak, 0.0)
-    return jnp.where(sat, end_refl, end_free)
+
+    def reflected():  # the peak of each piece's free path, only where a piece is saturated
+        S = E_start[pid] + C[1:] - C_start[pid]
+        peak = jax.ops.segment_max(S - E_max, pid, num_segments=K)  # -inf on empty pieces
+        return jnp.where(sat, end_free - jnp.maximum(peak, 0.0), end_free)
+
+    return jax.lax.cond(jnp.any(sat), reflected, lambda: end_free)
 
 
 class _Pieces(NamedTuple):
@@ -362,23 +472,20 @@ class _Pieces(NamedTuple):
     sw_ok: jax.Array  # (K,) bool: an I2b sequence within the limits exists (`_funnel`)
 
 
-def _solve_pieces(
-    vp, P_d, v, gear, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol, n_iter
-):
+def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol, n_iter):
     """Bisect every piece at once; mix the bracketing trajectories (I2a)."""
     K = bnd.shape[0] - 1
-    T = P_d.shape[0]
+    T = ok.shape[0]
     pid = piece_ids(bnd, T)
     E_start, tgt = E_bnd[:K], E_bnd[1:]
     lo = jnp.full((K,), lam_lo, dtype=E_bnd.dtype)
     hi = jnp.full((K,), lam_hi, dtype=E_bnd.dtype)
-    run = partial(_pass, vp, P_d, v, gear, ok)
-    dE_lo, Ef_lo = run(lo[pid], dt)
-    dE_hi, Ef_hi = run(hi[pid], dt)
+    run = partial(table_pass, vp, tab, ok)
     tol_v = _tol_v(tol, E_bnd.dtype)
     # the free path crosses E_max even at the most discharging lambda: the overshoot cannot be
     # avoided (recuperation beyond the battery), so the piece is reflected at E_max
-    _, S_hi, _ = _piece_paths(dE_hi, pid, bnd, E_start, jnp.zeros((K,), bool), E_max)
+    free = jnp.zeros((K,), bool)
+    _, S_hi, _ = _piece_paths(run(hi[pid], dt)[0], pid, bnd, E_start, free, E_max)
     sat = jax.ops.segment_max(S_hi[1:] - E_max, pid, num_segments=K) > tol_v
 
     def cond(c):  # stop once no bracket can shrink (float32: after about 28 halvings)
@@ -387,25 +494,21 @@ def _solve_pieces(
         return (i < n_iter) & jnp.any((mid > lo) & (mid < hi))
 
     def body(c):
-        i, lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = c
+        i, lo, hi = c
         mid = 0.5 * (lo + hi)
-        dE_m, Ef_m = run(mid[pid], dt)
-        end = _piece_ends(dE_m, pid, bnd, E_start, sat, E_max)
+        end = _piece_ends(run(mid[pid], dt)[0], pid, bnd, E_start, sat, E_max)
         # too much left: raise lam (saturated pieces: the largest lam that still ends on target)
         up = jnp.where(sat, end >= tgt - tol_v, end > tgt)
-        upk = up[pid]
-        return (
-            i + 1, jnp.where(up, mid, lo), jnp.where(up, hi, mid),
-            jnp.where(upk, dE_m, dE_lo), jnp.where(upk, Ef_m, Ef_lo),
-            jnp.where(upk, dE_hi, dE_m), jnp.where(upk, Ef_hi, Ef_m),
-        )
+        return i + 1, jnp.where(up, mid, lo), jnp.where(up, hi, mid)
 
     # n_iter halvings, fewer where the bracket already is one ulp wide: the halving is then
     # idempotent (mid rounds to lo, where the end stays above target, or to hi), so stopping
-    # changes nothing
-    _, lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi = jax.lax.while_loop(
-        cond, body, (jnp.int32(0), lo, hi, dE_lo, Ef_lo, dE_hi, Ef_hi)
-    )
+    # changes nothing. The loop carries the brackets alone, and the trajectories at their ends
+    # are passed after it: carried too, XLA fused the pass into each of their four selects
+    # and ran it four times per halving (3x slower under the elemental emitters)
+    _, lo, hi = jax.lax.while_loop(cond, body, (jnp.int32(0), lo, hi))
+    dE_lo, Ef_lo = run(lo[pid], dt)
+    dE_hi, Ef_hi = run(hi[pid], dt)
     end_p = _piece_ends(dE_lo, pid, bnd, E_start, sat, E_max)
     end_m = _piece_ends(dE_hi, pid, bnd, E_start, sat, E_max)
     den = end_p - end_m
@@ -419,8 +522,11 @@ def _solve_pieces(
         low = e < tgt
         return jnp.where(low, rm, ra), jnp.where(low, rb, rm)
 
-    ra, rb = jax.lax.fori_loop(0, 30, rbody, (jnp.zeros_like(lo), jnp.ones_like(lo)))
-    r_plus = jnp.where(sat & (den > 0), 0.5 * (ra + rb), r_plus)
+    def r_reflected():
+        ra, rb = jax.lax.fori_loop(0, 30, rbody, (jnp.zeros_like(lo), jnp.ones_like(lo)))
+        return jnp.where(sat & (den > 0), 0.5 * (ra + rb), r_plus)
+
+    r_plus = jax.lax.cond(jnp.any(sat), r_reflected, lambda: r_plus)
     sel = r_plus[pid]
     dE_mix = sel * dE_lo + (1 - sel) * dE_hi
     E, _, excess = _piece_paths(dE_mix, pid, bnd, E_start, sat, E_max)
@@ -428,7 +534,6 @@ def _solve_pieces(
     # upper violations: E - E_max in free pieces; in saturated pieces the exit of an arc on
     # E_max inside the piece (measured by the energy dumped so far), where I1 splits so that
     # the arc ends a piece
-    T = P_d.shape[0]
     j = jnp.arange(T + 1)
     p_prev = pid[jnp.clip(j - 1, 0, T - 1)]
     p_next = pid[jnp.clip(j, 0, T - 1)]
@@ -527,14 +632,13 @@ def _solve_core(
     K = max_pieces
     T = P_d.shape[0]
     dtype = jnp.result_type(P_d, float)
-    gear, ok = select_gears(vp, P_d, v, w, mask) if gears is None else gears
+    gear, ok, tab = step_model(vp, P_d, v, w, mask, gears)
     tol = tol_rel * vp.E_b_max
     tol_v = _tol_v(tol, dtype)  # a violation smaller than this is rounding
     bnd = jnp.concatenate([jnp.zeros((1,), jnp.int32), jnp.full((K,), T, jnp.int32)])
     E_bnd = jnp.concatenate([jnp.full((1,), E_b0, dtype), jnp.full((K,), E_b_end, dtype)])
     solve = partial(
-        _solve_pieces, vp, P_d, v, gear, ok, dt, E_min=E_min, E_max=E_max, lam_lo=lam_lo,
-        lam_hi=lam_hi,
+        _solve_pieces, vp, tab, ok, dt, E_min=E_min, E_max=E_max, lam_lo=lam_lo, lam_hi=lam_hi,
         tol=tol, n_iter=n_iter,
     )
 
@@ -639,8 +743,8 @@ def costate_kernel(
 
     P_d, v, w: (T,), mask: (T,) bool, every other argument a scalar (array leaves: new values
     never recompile). NaN E_b0 / E_b_end / E_max mean soc0 E_b_max / E_b0 / E_b_max.
-    gears: `select_gears(vp, P_d, v, w, mask)` if already at hand (a receding horizon slices
-    them from the whole route's: the selection is step by step).
+    gears: `select_gears(vp, P_d, v, w, mask)`, or the `step_model` of the steps, if already
+    at hand (a receding horizon slices the whole route's: both are step by step).
     """
     E_b0, E_b_end, E_max = _defaults(vp, E_b0, E_b_end, E_max)
     return _solve_core(
@@ -899,7 +1003,7 @@ def horizon_kernel(
     E_max = jnp.where(jnp.isnan(E_max), vp.E_b_max, E_max)
     T = P_d.shape[0]
     dtype = jnp.result_type(P_d, float)
-    gear, ok = select_gears(vp, P_d, v, w, mask) if gears is None else gears
+    gear, ok, tab = step_model(vp, P_d, v, w, mask, gears)
     tol = tol_rel * vp.E_b_max
 
     def path(dE):
@@ -909,22 +1013,20 @@ def horizon_kernel(
         return jnp.min(E - E_min), jnp.min(E_max - E)
 
     def run(lam):
-        return level2_steps(vp, P_d, v, gear, ok, lam, dt).dE
+        return table_pass(vp, tab, ok, lam, dt)[0]
 
     # g(lam) = d_low - d_up is non-increasing in lam: bisection on its sign maximises the
     # smaller distance min(d_low, d_up) (d_low falls and d_up rises with lam)
     def body(_, c):
-        lo, hi, d_lo, d_hi = c
+        lo, hi = c
         mid = 0.5 * (lo + hi)
-        dm = run(mid)
-        a, b = dists(path(dm))
+        a, b = dists(path(run(mid)))
         up = a > b
-        return (jnp.where(up, mid, lo), jnp.where(up, hi, mid), jnp.where(up, dm, d_lo),
-                jnp.where(up, d_hi, dm))
+        return jnp.where(up, mid, lo), jnp.where(up, hi, mid)
 
-    lo = jnp.asarray(lam_min, dtype)
-    hi = jnp.asarray(lam_max, dtype)
-    lo, hi, d_plus, d_minus = jax.lax.fori_loop(0, n_iter, body, (lo, hi, run(lo), run(hi)))
+    lo, hi = jax.lax.fori_loop(
+        0, n_iter, body, (jnp.asarray(lam_min, dtype), jnp.asarray(lam_max, dtype)))
+    d_plus, d_minus = run(lo), run(hi)  # after the loop, as in `_solve_pieces`
     E_plus, E_minus = path(d_plus), path(d_minus)
 
     # at a guard the two sides differ: mix them (I2a) to balance the two distances
@@ -956,7 +1058,8 @@ def horizon_kernel(
     def first_subproblem(_):
         m = mask & (jnp.arange(T) < tc)
         res = _solve_core(vp, P_d, v, w, m, dt, E_b0, lim, E_min, E_max, lam_min, lam_max,
-                          tol_rel, n_iter=n_iter, max_pieces=max_pieces, gears=(gear, ok & m))
+                          tol_rel, n_iter=n_iter, max_pieces=max_pieces,
+                          gears=StepModel(gear, ok & m, tab))
         status = (res.status | I3A).astype(jnp.int32)
         return res.lam0, res.E_b, status, res.r_plus[0], res.lam_lo[0], res.lam_hi[0]
 

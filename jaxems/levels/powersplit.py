@@ -149,41 +149,88 @@ def pm_of_pb(vp: VehicleParams, r: Ranges, P_b):
     return jnp.where(r.cm, r.pm0 + jnp.where(P_b > 0, vp.eta_m * P_b, P_b / vp.eta_m), 0.0)
 
 
-def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
-    """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
-    dtype = jnp.result_type(P_d, w, lam, float)
+class Setup(NamedTuple):
+    """What one mode's minimisation over P_b needs that does not depend on lambda_b: its
+    `Ranges` r, the feasible P_b interval [lo, hi], feasible, the fuel power of a declutched
+    idling engine (idle), and the candidates that do not depend on lambda_b (`fixed`: the
+    interval's ends, P_b = 0, the fuel kink, the brake kink and the loss parabola's vertex,
+    clipped to the interval, in `candidates` order). Scalars (per mode and step)."""
+
+    r: Ranges
+    lo: jax.Array
+    hi: jax.Array
+    feasible: jax.Array
+    idle: jax.Array
+    fixed: tuple
+
+
+def mode_setup(vp: VehicleParams, P_d, w, ce, cm, launch) -> Setup:
+    """The lambda-free part of `_split_one` for one mode (ce, cm flags) at gearbox speed w."""
+    dtype = jnp.result_type(P_d, w, float)
     r = component_ranges(vp, w, ce, cm, launch)
-    ce, cm, k, e_lo, e_hi, pe0, m_lim = r.ce, r.cm, r.k, r.e_lo, r.e_hi, r.pe0, r.m_lim
-    pm_lo = jnp.maximum(-m_lim, P_d - e_hi)
-    pm_hi = m_lim
+    pm_lo = jnp.maximum(-r.m_lim, P_d - r.e_hi)
+    pm_hi = r.m_lim
     feasible = (pm_lo <= pm_hi) & r.ok
     pm_lo = jnp.minimum(pm_lo, pm_hi)
     lo, hi = pb_of_pm(vp, r, pm_lo), pb_of_pm(vp, r, pm_hi)
-
-    two_bl = 2.0 * vp.beta * lam
-    stat_dis = -_safe_div(lam + k * vp.eta_m / vp.eta_e, two_bl)
-    stat_chg = -_safe_div(lam + k / (vp.eta_e * vp.eta_m), two_bl)
-    kink_fuel = pb_of_pm(vp, r, P_d - _safe_div(pe0, k))
+    kink_fuel = pb_of_pm(vp, r, P_d - _safe_div(r.pe0, r.k))
     kink_brake = pb_engine_lowest(vp, r, P_d)
     vertex = jnp.full_like(lo, -0.5 / vp.beta)
     # a conventional truck (no motor) idles its engine with the clutch open: idle fuel
-    idle = jnp.where(~ce & (vp.has_motor < 0.5), idle_fuel_power(vp), 0.0)
+    idle = jnp.where(~r.ce & (vp.has_motor < 0.5), idle_fuel_power(vp), 0.0)
+    fixed = tuple(jnp.clip(c.astype(dtype), lo, hi)
+                  for c in (lo, hi, jnp.zeros_like(lo), kink_fuel, kink_brake, vertex))
+    return Setup(r, lo, hi, feasible, idle, fixed)
+
+
+def stationary(vp: VehicleParams, s: Setup, lam):
+    """The stationary points of H's discharging and charging branches (Table 6), clipped to
+    the mode's interval: the candidates that depend on lambda_b."""
+    two_bl = 2.0 * vp.beta * lam
+    k, dtype = s.r.k, jnp.result_type(s.lo, lam, float)
+    return tuple(jnp.clip(c.astype(dtype), s.lo, s.hi)
+                 for c in (-_safe_div(lam + k * vp.eta_m / vp.eta_e, two_bl),
+                           -_safe_div(lam + k / (vp.eta_e * vp.eta_m), two_bl)))
+
+
+def candidates(fixed, stat):
+    """Every candidate in the order the minimisation takes them (the first wins ties)."""
+    return tuple(fixed[:3]) + tuple(stat) + tuple(fixed[3:])
+
+
+def mode_powers(vp: VehicleParams, s: Setup, P_d, c):
+    """(P_b, P_m, P_out, P_f) of candidate battery power c (in the interval: `Setup.fixed`,
+    `stationary`)."""
+    r = s.r
+    P_m = pm_of_pb(vp, r, c)
+    P_out = jnp.where(r.ce, jnp.clip(P_d - P_m, r.e_lo, r.e_hi), 0.0)
+    P_f = jnp.where(r.ce, jnp.maximum(r.k * P_out - r.pe0, 0.0) / vp.eta_e, s.idle)
+    return c, P_m, P_out, P_f
+
+
+def running_min(cands, key: int = -1):
+    """The candidate tuple with the least entry `key` (H), the first on ties; a running
+    minimum, unrolled: one fused element-wise kernel (stacking them for an argmin was 10x
+    slower under vmap)."""
+    best = cands[0]
+    for cand in cands[1:]:
+        better = cand[key] < best[key]
+        best = tuple(jnp.where(better, x, y) for x, y in zip(cand, best, strict=True))
+    return best
+
+
+def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
+    """Minimise H over P_b for one mode (ce, cm flags) at gearbox speed w. Scalars in and out."""
+    dtype = jnp.result_type(P_d, w, lam, float)
+    s = mode_setup(vp, P_d, w, ce, cm, launch)
 
     def evaluate(c):  # (P_b, P_m, P_out, P_f, H) of candidate battery power c
-        c = jnp.clip(c.astype(dtype), lo, hi)
-        P_m = pm_of_pb(vp, r, c)
-        P_out = jnp.where(ce, jnp.clip(P_d - P_m, e_lo, e_hi), 0.0)
-        P_f = jnp.where(ce, jnp.maximum(k * P_out - pe0, 0.0) / vp.eta_e, idle)
+        c, P_m, P_out, P_f = mode_powers(vp, s, P_d, c.astype(dtype))
         return c, P_m, P_out, P_f, P_f - lam * pt.battery_internal(vp, c)
 
-    # a running minimum over the candidates, unrolled (first one wins ties, as argmin): one
-    # fused element-wise kernel; stacking them for an argmin was 10x slower under vmap
-    best = evaluate(lo)
-    for c in (hi, jnp.zeros_like(lo), stat_dis, stat_chg, kink_fuel, kink_brake, vertex):
-        cand = evaluate(c)
-        better = cand[-1] < best[-1]
-        best = tuple(jnp.where(better, x, y) for x, y in zip(cand, best, strict=True))
+    best = running_min([evaluate(c) for c in candidates(s.fixed, stationary(vp, s, lam))])
     P_b, P_m, P_out, P_f, H_c = best
+    feasible = s.feasible
     H = jnp.where(feasible, H_c, jnp.inf)
     P_brake = jnp.minimum(P_d - P_out - P_m, 0.0)
     z = jnp.zeros_like(H)
@@ -191,22 +238,13 @@ def _split_one(vp: VehicleParams, P_d, w, lam, ce, cm, launch):
     return Split(
         H=H,
         P_b=pick(P_b),
-        P_e=pick(k * P_out),
+        P_e=pick(s.r.k * P_out),
         P_m=pick(P_m),
         P_f=pick(P_f),
         P_brake=pick(P_brake),
         w=w,
         feasible=feasible,
     )
-
-
-def modes_at_gear(vp: VehicleParams, P_d, v, gear, lam) -> Split:
-    """The optimal split of every mode in one gear (index): `Split` of shape (4,), equal to
-    `mode_gear_split(...)[:, gear]` at a twelfth of the cost."""
-    w = pt.shaft_speeds(vp, v)[gear]
-    per_mode = jax.vmap(_split_one, in_axes=(None, None, None, None, 0, 0, None))
-    return per_mode(vp, P_d, w, lam, jnp.array(ENGINE_CONNECTED), jnp.array(MOTOR_CONNECTED),
-                    gear == 0)
 
 
 def split_state(vp: VehicleParams, P_d, v, lam, mode, gear) -> Split:
