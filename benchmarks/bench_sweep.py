@@ -275,8 +275,11 @@ def source_hash(package: Path) -> str:
 
 def code_version() -> dict:
     """The git commit of the tree measured, whether jaxems/ had uncommitted changes, and the
-    hash of jaxems/'s files (`source_hash`)."""
-    root = Path(__file__).resolve().parents[1]
+    hash of jaxems/'s files (`source_hash`): of the jaxems imported (another checkout on
+    PYTHONPATH, to compare two versions), not of this script's tree."""
+    import jaxems
+
+    root = Path(jaxems.__file__).resolve().parents[1]
 
     def git(*a):
         try:
