@@ -10,7 +10,7 @@ is minimised over the four modes in the gear G_k by the Level 1 kernel of
 `jaxems.levels.powersplit` (no physics is repeated here), which gives the battery power P_b,k
 and  E_b(k+1) = E_b(k) - P_bi(P_b,k) dt  (eq. 52). What does not depend on lambda_b (the
 modes' ranges, and fuel and battery power at the candidates other than the two stationary
-points) is computed once per route (`step_table`), so that each pass of a bisection evaluates
+points) is computed once per solve (`step_table`), so that each pass of a bisection evaluates
 only the combined mode's stationary points and compares. Since dlambda_b/dt = 0 (eq. 54),
 lambda_b is constant between constraint activations and the problem is a boundary value
 problem in lambda_b alone.
@@ -226,9 +226,9 @@ def _table_one(vp, t: StepTable, ok, lam, dt) -> Level2Steps:
     per_mode = (
         ps.candidates(fixed_c, [evaluate(c) for c in ps.stationary(vp, t.combined, lam)]),
         [(z, t.P_f_e, z)],
-        # no fuel to trade: H = P_f_m - lam P_bi is least at the interval's end or the loss
-        # parabola's vertex, both lambda-free (the stationary points, the combined mode's, never
-        # beat them)
+        # no fuel to trade: H = P_f_m - lam P_bi is least at an end of the interval or at the
+        # loss parabola's vertex, all lambda-free (the stationary points, whose formulas trade
+        # fuel, never beat them)
         [(c, t.P_f_m, b) for c, b in zip(t.motor.fixed, t.P_bi_m, strict=True)],
         [(z, t.P_f_o, z)],
     )
