@@ -222,7 +222,7 @@ def _table_one(vp, t: StepTable, ok, lam, dt) -> Level2Steps:
         return c, P_f, pt.battery_internal(vp, c)
 
     z = jnp.zeros_like(t.P_d)
-    fixed_c = [(t.combined.fixed[i], t.P_f_c[i], t.P_bi_c[i]) for i in range(6)]
+    fixed_c = [(c, t.P_f_c[i], t.P_bi_c[i]) for i, c in enumerate(t.combined.fixed)]
     per_mode = (
         ps.candidates(fixed_c, [evaluate(c) for c in ps.stationary(vp, t.combined, lam)]),
         [(z, t.P_f_e, z)],
@@ -242,8 +242,8 @@ def _table_one(vp, t: StepTable, ok, lam, dt) -> Level2Steps:
          for m, (c, f, b, h) in enumerate(best)], key=3)
     use = ok & jnp.isfinite(H)
     P_b = jnp.where(use, P_b, 0.0)
-    setup = jax.tree.map(lambda a, b: jnp.where(mode == ps.MC, a, b), t.combined, t.motor)
-    P_m = jnp.where(use & ((mode == ps.MC) | (mode == ps.MM)), ps.pm_of_pb(vp, setup.r, P_b), 0.0)
+    r = jax.tree.map(lambda a, b: jnp.where(mode == ps.MC, a, b), t.combined.r, t.motor.r)
+    P_m = jnp.where(use & ((mode == ps.MC) | (mode == ps.MM)), ps.pm_of_pb(vp, r, P_b), 0.0)
     return Level2Steps(P_b=P_b, dE=-jnp.where(use, P_bi, 0.0) * dt,
                        E_f=jnp.where(use, P_f, 0.0) * dt, P_m=P_m, mode=mode)
 
