@@ -579,37 +579,33 @@ def _level1_batch(vps, P_d, v, grade, mask, lam, dt, init_mode, init_gear, param
     R, T = P_d.shape
     n_v = jax.tree_util.tree_leaves(vps)[0].shape[0]
     L = lam.shape[0]
+    # one flat batch over (route, vehicle, lambda_b), row-major, with every input gathered to
+    # it: vmapped over lambda_b with the route's inputs unbatched, XLA's CPU fusion evaluated
+    # the Hamiltonian table again inside each of the switching-cost tables' consumers (about
+    # ten times the work per configuration)
+    ri, vi, li = (a.reshape(-1) for a in np.indices((R, n_v, L)))
+    vb = jax.tree_util.tree_map(lambda a: a[vi], vps)
+    P_db, v_b, g_b, m_b, lam_b = P_d[ri], v[ri], grade[ri], mask[ri], lam[li]
 
-    # per-configuration tables: vmap over lambda, vehicles, routes -> leading (R, V, L)
     def one(vp, P_d, v, grade, lam):
         return _tables(vp, P_d, v, grade, lam, dt, params)
 
-    f = jax.vmap(one, in_axes=(None, None, None, None, 0))
-    f = jax.vmap(f, in_axes=(0, None, None, None, None))
-    f = jax.vmap(f, in_axes=(None, 0, 0, 0, None))
-    tb = f(vps, P_d, v, grade, lam)
-    B = R * n_v * L
-    flat = lambda a: a.reshape((B,) + a.shape[3:])  # noqa: E731
-    last = lambda a: jnp.moveaxis(flat(a), 0, -1)  # noqa: E731
+    tb = jax.vmap(one)(vb, P_db, v_b, g_b, lam_b)
+    last = lambda a: jnp.moveaxis(a, 0, -1)  # noqa: E731
     stage = last(tb.stage)  # (T, S, B)
     S = stage.shape[1]
     n_g = S // N_MODES
     xs = TransitionInputs(scale=last(tb.xs.scale), trac=last(tb.xs.trac))
     consts = jax.tree_util.tree_map(last, tb.consts)
     dconsts = jax.tree_util.tree_map(last, tb.dconsts)
-    m = jnp.broadcast_to(mask[:, None, None], (R, n_v, L, T))
     init = _init_cost(init_mode, init_gear, S, n_g, stage.dtype)
-    r = solve_dp(vps.dt_M, vps.dt_G, stage, xs, consts, dconsts, init[:, None], last(m))
-    path = jnp.moveaxis(r.path, -1, 0).reshape(R, n_v, L, T)
-    start = r.start.reshape(R, n_v, L)
+    r = solve_dp(vb.dt_M, vb.dt_G, stage, xs, consts, dconsts, init[:, None], last(m_b))
 
     def res(vp, tb1, path1, start1, v1, grade1, mask1):
         return _result(vp, tb1, path1, start1, v1, grade1, dt, mask1, params)
 
-    g = jax.vmap(res, in_axes=(None, 0, 0, 0, None, None, None))
-    g = jax.vmap(g, in_axes=(0, 0, 0, 0, None, None, None))
-    g = jax.vmap(g, in_axes=(None, 0, 0, 0, 0, 0, 0))
-    return g(vps, tb, path, start, v, grade, mask)
+    out = jax.vmap(res)(vb, tb, last(r.path), r.start, v_b, g_b, m_b)
+    return jax.tree_util.tree_map(lambda a: a.reshape((R, n_v, L) + a.shape[1:]), out)
 
 
 _level1_batch_jit = jit(_level1_batch)
