@@ -117,6 +117,42 @@ def test_gears_of_a_window_are_the_routes_sliced(j, seed):
                 np.testing.assert_array_equal(x, y)
 
 
+@settings(max_examples=15, deadline=None)
+@given(j=st.integers(0, 110), seed=st.integers(0, 2**16), E0=st.floats(0.05, 0.95))
+def test_a_window_padded_with_masked_steps_gives_the_same_costate(j, seed, E0):
+    """The MPC solves Level 2 on its window rounded up to a multiple of 16 steps, the steps
+    beyond it masked (`strategies.mpc_window`, for XLA's CPU cumulative sums): a masked step
+    moves no energy, so both kernels give the window's costate and battery path, bit for bit,
+    and the path stays where the window ends."""
+    from jaxems.strategies import mpc_window
+
+    rng = np.random.default_rng(seed)
+    T, n = 170, 40
+    n2 = mpc_window(n)
+    assert n2 % 16 == 0 and n <= n2 < n + 16
+    P_d, v = rng.uniform(-150e3, 350e3, T), rng.uniform(0.0, 25.0, T)
+    w, mask = rng.uniform(600, 1800, T) * RPM, rng.random(T) < 0.9
+    model = jax.tree.map(np.asarray, _model(VP, P_d, v, w, mask))
+    E_b0 = E0 * VP.E_b_max
+
+    def window(m):  # the arrays of an m-step slice at j, masked beyond n
+        sl = slice(j, j + m)
+        inside = np.arange(m) < n
+        gear, ok, tab = jax.tree.map(lambda a: a[sl], model)
+        return ((VP, P_d[sl], v[sl], w[sl], mask[sl] & inside, 1.0, E_b0),
+                b.StepModel(gear, ok & inside, tab))
+
+    (a, ga), (p, gp) = window(n), window(n2)
+    h, hp = _horizon(*a, gears=ga), _horizon(*p, gears=gp)
+    assert float(h.lam) == float(hp.lam) and int(h.status) == int(hp.status)
+    c, cp = _costate(*a, gears=ga), _costate(*p, gears=gp)
+    assert float(c.lam0) == float(cp.lam0) and int(c.status) == int(cp.status)
+    np.testing.assert_array_equal(np.asarray(c.lam), np.asarray(cp.lam)[:n])
+    E, Ep = np.asarray(c.E_b), np.asarray(cp.E_b)
+    np.testing.assert_array_equal(E, Ep[:n + 1])
+    assert np.all(Ep[n:] == E[-1])
+
+
 @settings(max_examples=30, deadline=None)
 @given(K=st.integers(1, 6), seed=st.integers(0, 2**16))
 def test_piece_sums_equal_a_loop_over_the_pieces(K, seed):
