@@ -894,10 +894,10 @@ class MpcParams(NamedTuple):
 def mpc_window(h2: int) -> int:
     """Steps of the arrays the MPC's Level 2 solves on: its window h2 rounded up to a multiple
     of 16, the steps beyond h2 masked (a masked step moves no energy, so the costate is the
-    same). XLA's CPU backend sums a cumulative sum (each Level 2 pass's battery path) in blocks
-    of 16 and pads the last block; fused with the pass that produces the sums' input, that
-    padding made the whole pass run as scalar code: one pass and its path over a 1000-step
-    window took 22 us, over 1008 steps 10 (float32, one core). Full routes have
+    same). XLA's CPU backend computes a cumulative sum (each Level 2 pass's battery path) in
+    blocks of 16 and pads the last block; fused with the pass that produces the sum's input,
+    that padding made the whole pass run as scalar code: one pass and its path over a
+    1000-step window took 22 us, over 1008 steps 10 (float32, one core). Full routes have
     `velocity.steps_for`'s bucketed lengths."""
     return -(-h2 // 16) * 16
 

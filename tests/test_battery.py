@@ -142,15 +142,22 @@ def test_a_window_padded_with_masked_steps_gives_the_same_costate(j, seed, E0):
         return ((VP, P_d[sl], v[sl], w[sl], mask[sl] & inside, 1.0, E_b0),
                 b.StepModel(gear, ok & inside, tab))
 
+    def same(x, y):  # equal on a CPU; a GPU's two programs may round apart (1 ulp)
+        x, y = np.asarray(x), np.asarray(y)
+        if jax.default_backend() == "cpu" or not np.issubdtype(x.dtype, np.floating):
+            np.testing.assert_array_equal(x, y)
+        else:
+            np.testing.assert_allclose(x, y, rtol=1e-12, atol=0)
+
     (a, ga), (p, gp) = window(n), window(n2)
     h, hp = _horizon(*a, gears=ga), _horizon(*p, gears=gp)
-    assert float(h.lam) == float(hp.lam) and int(h.status) == int(hp.status)
+    for x, y in ((h.lam, hp.lam), (h.status, hp.status), (h.margin, hp.margin)):
+        same(x, y)
     c, cp = _costate(*a, gears=ga), _costate(*p, gears=gp)
-    assert float(c.lam0) == float(cp.lam0) and int(c.status) == int(cp.status)
-    np.testing.assert_array_equal(np.asarray(c.lam), np.asarray(cp.lam)[:n])
-    E, Ep = np.asarray(c.E_b), np.asarray(cp.E_b)
-    np.testing.assert_array_equal(E, Ep[:n + 1])
-    assert np.all(Ep[n:] == E[-1])
+    for x, y in ((c.lam0, cp.lam0), (c.status, cp.status), (c.lam, np.asarray(cp.lam)[:n]),
+                 (c.E_b, np.asarray(cp.E_b)[:n + 1])):
+        same(x, y)
+    same(np.asarray(cp.E_b)[n:], np.full(n2 - n + 1, np.asarray(c.E_b)[-1]))
 
 
 @settings(max_examples=30, deadline=None)
