@@ -891,29 +891,14 @@ class MpcParams(NamedTuple):
     switch: sw.SwitchCostParams
 
 
-def mpc_window(h2: int) -> int:
-    """Steps of the arrays the MPC's Level 2 solves on: its window h2 rounded up to a multiple
-    of 16, the steps beyond h2 masked (a masked step moves no energy, so the costate is the
-    same). XLA's CPU backend computes a cumulative sum (each Level 2 pass's battery path) in
-    blocks of 16 and pads the last block; fused with the pass that produces the sum's input,
-    that padding made the whole pass run as scalar code: one pass and its path over a
-    1000-step window took 22 us, over 1008 steps 10 (float32, one core). Full routes have
-    `velocity.steps_for`'s bucketed lengths."""
-    return -(-h2 // 16) * 16
-
-
 def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
-    n2 = mpc_window(h2)
-
     def ctrl(p: MpcParams, cstate, vp, obs: pl.Obs):
         lam_prev, k_last = cstate
         j = obs.j
-        win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, n2)  # noqa: E731
-        in_h2 = jnp.arange(n2) < h2
+        win2 = lambda a: jax.lax.dynamic_slice_in_dim(a, j, h2)  # noqa: E731
         covers_end = j + h2 > p.end
-        args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask) & in_h2, p.dt)
-        gear, ok, tab = jax.tree.map(win2, p.gears)
-        gears = l2.StepModel(gear, ok & in_h2, tab)
+        args = (win2(p.P_d), win2(p.v), win2(p.w), win2(p.mask), p.dt)
+        gears = jax.tree.map(win2, p.gears)
 
         def to_end():  # the window reaches the route's end: charge sustaining there, within
             # the battery's limits (I1, up to `pieces` pieces: the first piece's costate is
@@ -985,7 +970,7 @@ def mpc_end_target(vp, track: pl.Track, opts: Options):
 def mpc_params(vp, pred: l3.Prediction, track: pl.Track, dt, opts: Options,
                params) -> MpcParams:
     """The MPC controller's `MpcParams` on a Level 3 prediction and its track."""
-    h = max(opts.h1 + 1, mpc_window(opts.h2))
+    h = max(opts.h1 + 1, opts.h2)
     padf = lambda a: jnp.concatenate([a, jnp.zeros(h, a.dtype)])  # noqa: E731
     end = jnp.maximum(jnp.sum(pred.mask) - 1, 0)
     P_d, v, w = padf(pred.P_d), padf(pred.v), padf(mpc_omega(vp, pred))

@@ -120,15 +120,13 @@ def test_gears_of_a_window_are_the_routes_sliced(j, seed):
 @settings(max_examples=15, deadline=None)
 @given(j=st.integers(0, 110), seed=st.integers(0, 2**16), E0=st.floats(0.05, 0.95))
 def test_a_window_padded_with_masked_steps_gives_the_same_costate(j, seed, E0):
-    """The MPC solves Level 2 on its window rounded up to a multiple of 16 steps, the steps
-    beyond it masked (`strategies.mpc_window`, for XLA's CPU cumulative sums): a masked step
-    moves no energy, so both kernels give the window's costate and battery path, bit for bit,
-    and the path stays where the window ends."""
-    from jaxems.strategies import mpc_window
-
+    """The kernels solve on their steps rounded up to a multiple of 16, the steps beyond them
+    masked (`battery.aligned_steps`, for XLA's CPU cumulative sums): a masked step moves no
+    energy, so a window given with masked steps up to that length gives the window's costate
+    and battery path, bit for bit, and the path stays where the window ends."""
     rng = np.random.default_rng(seed)
     T, n = 170, 40
-    n2 = mpc_window(n)
+    n2 = b.aligned_steps(n)
     assert n2 % 16 == 0 and n <= n2 < n + 16
     P_d, v = rng.uniform(-150e3, 350e3, T), rng.uniform(0.0, 25.0, T)
     w, mask = rng.uniform(600, 1800, T) * RPM, rng.random(T) < 0.9

@@ -726,6 +726,36 @@ def _solve_core(
     )
 
 
+SUM_BLOCK = 16  # the kernels run on a multiple of this many steps (`aligned_steps`)
+
+
+def aligned_steps(T: int) -> int:
+    """The number of steps the Level 2 kernels solve on for T steps: T rounded up to a multiple
+    of `SUM_BLOCK`, the steps beyond T masked (a masked step moves no energy, so the solution is
+    the same). XLA's CPU backend computes a cumulative sum (each pass's battery path) in blocks
+    of 16 and pads the last block; fused with the pass that produces the sum's input, that
+    padding made the whole pass run as scalar code: one pass and its path over 1000 steps took
+    22 us, over 1008 steps 10 (float32, one core; the MPC's 1000-step windows ran twice as
+    fast aligned). Routes' step counts are bucketed (`velocity.steps_for`) and need nothing."""
+    return -(-T // SUM_BLOCK) * SUM_BLOCK
+
+
+def _aligned(P_d, v, w, mask, gears):
+    """The kernels' step inputs padded to `aligned_steps` with masked steps (ok False in
+    `gears`: a (gear, ok) pair or a `StepModel`, if given)."""
+    T = jnp.shape(P_d)[0]
+    k = aligned_steps(T) - T
+    if k == 0:
+        return P_d, v, w, mask, gears
+
+    def pad(a):
+        a = jnp.asarray(a)
+        return jnp.concatenate([a, jnp.zeros((k,) + a.shape[1:], a.dtype)])
+
+    gears = None if gears is None else jax.tree.map(pad, gears)
+    return pad(P_d), pad(v), pad(w), pad(mask), gears
+
+
 def _defaults(vp, E_b0, E_b_end, E_max):
     """NaN means "default": E_b0 = soc0 E_b_max, E_b_end = E_b0, E_max = E_b_max."""
     E_b0 = jnp.where(jnp.isnan(E_b0), vp.soc0 * vp.E_b_max, E_b0)
@@ -745,12 +775,21 @@ def costate_kernel(
     never recompile). NaN E_b0 / E_b_end / E_max mean soc0 E_b_max / E_b0 / E_b_max.
     gears: `select_gears(vp, P_d, v, w, mask)`, or the `step_model` of the steps, if already
     at hand (a receding horizon slices the whole route's: both are step by step).
+    It solves on `aligned_steps(T)` steps, the added ones masked, and returns the T steps'.
     """
     E_b0, E_b_end, E_max = _defaults(vp, E_b0, E_b_end, E_max)
-    return _solve_core(
+    T = jnp.shape(P_d)[0]
+    P_d, v, w, mask, gears = _aligned(P_d, v, w, mask, gears)
+    res = _solve_core(
         vp, P_d, v, w, mask, dt, E_b0, E_b_end, E_min, E_max, lam_min, lam_max, tol_rel,
         n_iter=n_iter, max_pieces=max_pieces, gears=gears,
     )
+    if res.lam.shape[0] == T:
+        return res
+    steps = {f: getattr(res, f)[:T] for f in ("lam", "sel", "dE_plus", "dE_minus", "E_f_plus",
+                                               "E_f_minus", "E_f", "gear")}
+    return res._replace(**steps, E_b=res.E_b[:T + 1], E_b_i2a=res.E_b_i2a[:T + 1],
+                        boundaries=jnp.minimum(res.boundaries, T).astype(res.boundaries.dtype))
 
 
 _costate_jit = jit(costate_kernel, static_argnames=("n_iter", "max_pieces"))
@@ -999,7 +1038,18 @@ def horizon_kernel(
     max_pieces: int = 4, gears=None,
 ) -> HorizonResult:
     """Traceable I3 kernel (one vehicle, one window); see `level2_horizon`. gears: as in
-    `costate_kernel`."""
+    `costate_kernel`; solved on `aligned_steps(T)` steps, as there."""
+    T = jnp.shape(P_d)[0]
+    P_d, v, w, mask, gears = _aligned(P_d, v, w, mask, gears)
+    res = _horizon_core(vp, P_d, v, w, mask, dt, E_b0, E_min, E_max, lam_min, lam_max, tol_rel,
+                        n_iter=n_iter, max_pieces=max_pieces, gears=gears)
+    if res.E_b.shape[0] == T + 1:
+        return res
+    return res._replace(E_b=res.E_b[:T + 1], t_event=jnp.minimum(res.t_event, T))
+
+
+def _horizon_core(vp, P_d, v, w, mask, dt, E_b0, E_min, E_max, lam_min, lam_max, tol_rel, *,
+                  n_iter, max_pieces, gears):
     E_max = jnp.where(jnp.isnan(E_max), vp.E_b_max, E_max)
     T = P_d.shape[0]
     dtype = jnp.result_type(P_d, float)
