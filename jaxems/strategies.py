@@ -916,19 +916,24 @@ def _mpc_controller(h1: int, h2: int, t2: int, pieces: int, l2_iter: int = 24):
                                lambda: lam_prev.astype(p.P_d.dtype))
         lam = jnp.where(due, lam_new, lam_prev).astype(lam_prev.dtype)
         k_last = jnp.where(due, obs.k, k_last).astype(k_last.dtype)
-        # Level 1: DP over the next h1 samples from the measured state, first decision applied
-        win1 = lambda a: jax.lax.dynamic_slice_in_dim(a, j + 1, h1)  # noqa: E731
-        tb = l1._tables(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
-        S = tb.stage.shape[1]
-        n_g = S // ps.N_MODES
-        s_cur = obs.mode * n_g + obs.gear
-        init = jnp.where(jnp.arange(S) == s_cur, 0.0, jnp.inf).astype(tb.stage.dtype)
-        s0, cost = dp.viterbi_first(tb.stage, l1.structured_transition(tb.xs, tb.consts), init,
-                                    win1(p.mask))
-        s0 = jnp.where(jnp.isfinite(cost), s0, s_cur)
-        return (lam, k_last), pl.Command(mode=s0 // n_g, gear=s0 % n_g, lam=lam, P_b=jnp.nan)
+        return (lam, k_last), mpc_level1(p, vp, obs, lam, h1)
 
     return ctrl
+
+
+def mpc_level1(p: MpcParams, vp, obs: pl.Obs, lam, h1: int) -> pl.Command:
+    """The MPC's Level 1: a DP over the next h1 samples from the measured mode and gear at
+    costate lam (), its first decision applied; the plant splits the power at lam."""
+    win1 = lambda a: jax.lax.dynamic_slice_in_dim(a, obs.j + 1, h1)  # noqa: E731
+    tb = l1._tables(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
+    S = tb.stage.shape[1]
+    n_g = S // ps.N_MODES
+    s_cur = obs.mode * n_g + obs.gear
+    init = jnp.where(jnp.arange(S) == s_cur, 0.0, jnp.inf).astype(tb.stage.dtype)
+    s0, cost = dp.viterbi_first(tb.stage, l1.structured_transition(tb.xs, tb.consts), init,
+                                win1(p.mask))
+    s0 = jnp.where(jnp.isfinite(cost), s0, s_cur)
+    return pl.Command(mode=s0 // n_g, gear=s0 % n_g, lam=lam, P_b=jnp.nan)
 
 
 STEADY_ACCEL = 0.05  # m/s^2: below this the reference holds its speed (a descent's braking)
@@ -981,11 +986,14 @@ def mpc_params(vp, pred: l3.Prediction, track: pl.Track, dt, opts: Options,
                      dt=jnp.asarray(dt, pred.v.dtype), switch=params)
 
 
-def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
+def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params, ctrl=None) -> Run:
+    """The MPC in the plant loop; ctrl: another controller on its `MpcParams` (analyses, e.g.
+    `mpc_level1` at a given costate: experiments/mpc_gap.py), None: the MPC's own."""
     pred = level3(route, vp, dt, n_steps)
     track = pl.make_track(route, pred, opts.end_cap)
     p = mpc_params(vp, pred, track, dt, opts, params)
-    ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)
+    if ctrl is None:
+        ctrl = _mpc_controller(opts.h1, opts.h2, opts.t2, pieces=opts.mpc_pieces)
     c0 = (jnp.asarray(opts.lam0, pred.v.dtype), jnp.asarray(-10**6, jnp.int32))
     m0, g0 = _first_state(vp, pred, opts.lam0)
     res = pl.run_plant(vp, track, ctrl, p, c0, m0, g0, plant_steps(n_steps, opts), dt)

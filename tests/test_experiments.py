@@ -1,5 +1,5 @@
-"""experiments/table7.py, table8.py, traces.py, charge_grid.py and resolution.py: JSON
-structure, row arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py and mpc_gap.py:
+JSON structure, row arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -207,3 +207,18 @@ def test_resolution_summary_against_plain_arithmetic(capsys):
     assert "--offsets: expected distinct kilograms >= 0" in capsys.readouterr().err
     assert res.main(["--mass", "1,2", "--strategies", "baseline"]) == 1
     assert "--mass: expected one number" in capsys.readouterr().err
+
+
+def test_mpc_gap_level1_at_a_given_costate_is_the_mpc(capsys):
+    """mpc_gap: the MPC's Level 1 (`strategies.mpc_level1`) fed, by position, the costate trace
+    of an MPC run reproduces that run (fuel, battery, switches, trip); bad horizons are one
+    line naming --h1."""
+    gap = _script("mpc_gap")
+    vp = load_vehicle().replace(mass=25000.0)
+    mpc = simulate("short_track", vp, "multilevel-mpc")
+    got = gap.given_costate(gap.S.route_arg("short_track"), vp, mpc.trace.s, mpc.trace.lam, 5)
+    for k in ("fuel_J", "delta_Eb_J", "mode_switches", "gear_switches", "trip_time_s"):
+        assert float(np.asarray(got[k]).reshape(-1)[0]) == pytest.approx(mpc[k], rel=1e-12), k
+    assert gap.main(["--h1", "0"]) == 1
+    assert "--h1: expected comma-separated whole numbers >= 1" in capsys.readouterr().err
+    assert gap.main(["--h1", "five"]) == 1
