@@ -261,3 +261,21 @@ def test_bound_dp_is_the_optimum_where_its_grid_is_exact(seed, standing):
     assert total == pytest.approx(best, rel=1e-12)
     assert _ref_bound(tab, pred, s_init, goal, n_E, penalty).value == pytest.approx(best,
                                                                                   rel=1e-12)
+
+
+def test_bound_dp_vmapped_equals_each_alone():
+    """A batch of dp-bound's DPs (vmapped, as a sweep's chunk runs them; each candidate's
+    value-function column read as one slice) equals each DP alone: paths, costs, E_b(tf)."""
+    T, n_E = 6, 9
+    rng = np.random.default_rng(11)
+    insts = [_bound_instance(rng, T, n_E, False, False, np.ones(T, bool)) for _ in range(3)]
+    pred = insts[0][1]
+    goal, penalty = 0.5 * float(_VP.E_b_max), 1.0
+    tabs = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[tab for tab, _, _ in insts])
+    batch = xla.jit(jax.vmap(lambda tab: S_.bound_dp(_VP, pred, tab, goal, n_E, penalty)))(tabs)
+    for b, (tab, _, _) in enumerate(insts):
+        one = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
+        np.testing.assert_array_equal(np.asarray(batch.state[b]), np.asarray(one.state))
+        np.testing.assert_allclose(np.asarray(batch.cost[b]), np.asarray(one.cost), rtol=1e-12)
+        np.testing.assert_allclose(float(batch.E_end[b]), float(one.E_end), rtol=1e-12)
+        np.testing.assert_allclose(float(batch.lam0[b]), float(one.lam0), rtol=1e-9)
