@@ -193,15 +193,16 @@ _BS, _BJ = 8, 3  # states (4 modes x 2 "gears"), candidates per state
 _VP = load_vehicle("reference_truck")
 
 
-def _bound_instance(rng, T, n_E, aligned, standing, mask):
+def _bound_instance(rng, T, n_E, aligned, standing, mask, reach=1.7):
     """Random tables for `bound_dp`: fuel (T, J, S) with some infeasible (BIG) entries, E_b
-    changes (multiples of the grid spacing where aligned), switching costs (T, S, S)."""
+    changes (multiples of the grid spacing where aligned, else within +-reach cells),
+    switching costs (T, S, S)."""
     E_max = float(_VP.E_b_max)
     dE = E_max / (n_E - 1)
     if aligned:
         dEb = rng.integers(-2, 3, (T, _BJ, _BS)) * dE
     else:
-        dEb = rng.uniform(-1.7, 1.7, (T, _BJ, _BS)) * dE
+        dEb = rng.uniform(-reach, reach, (T, _BJ, _BS)) * dE
     fuel = rng.uniform(0.0, 2e5, (T, _BJ, _BS)) - 1.2 * dEb  # discharging saves fuel
     fuel[rng.random(fuel.shape) < 0.1] = S_.BIG
     C = rng.uniform(0.0, 3e4, (T, _BS, _BS))
@@ -224,14 +225,16 @@ def _ref_bound(tab, pred, s_init, goal, n_E, penalty):
 
 @settings(max_examples=25)
 @given(seed=st.integers(0, 2**31 - 1), standing=st.booleans(), pad=st.integers(0, 2),
-       goal_frac=st.floats(0.3, 0.7), penalty=st.sampled_from([0.0, 1.0, 10.0]))
-def test_bound_dp_equals_its_loops(seed, standing, pad, goal_frac, penalty):
+       goal_frac=st.floats(0.3, 0.7), penalty=st.sampled_from([0.0, 1.0, 10.0]),
+       reach=st.sampled_from([1.7, 12.0]))
+def test_bound_dp_equals_its_loops(seed, standing, pad, goal_frac, penalty, reach):
     """dp-bound's DP (value function on an E_b grid, interpolated; forward rollout from E0)
-    equals the same recursion written as loops, with steps that do not count at the end."""
+    equals the same recursion written as loops, with steps that do not count at the end; also
+    where a step moves E_b by more cells than the grid has (reach 12 on 9 points)."""
     T, n_E = 6, 9
     mask = np.arange(T) < T - pad
     tab, pred, s_init = _bound_instance(np.random.default_rng(seed), T, n_E, False, standing,
-                                        mask)
+                                        mask, reach)
     goal = goal_frac * float(_VP.E_b_max)
     bp = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
     ref = _ref_bound(tab, pred, s_init, goal, n_E, penalty)
