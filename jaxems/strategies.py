@@ -1061,6 +1061,15 @@ class BoundPath(NamedTuple):
     lam0: Any
 
 
+def lam_states(n_g: int) -> int:
+    """How many of dp-bound's states (mode x n_g gears, mode-major) come first and have a
+    battery-power choice that depends on the costate: M_c's. The other modes' split is fixed
+    by the demand (M_e: no motor, M_m: no engine, M_o: neither), the same at every costate
+    (tested on `bound_tables`)."""
+    assert ps.MC == 0, "M_c's states come first"
+    return n_g
+
+
 def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTables:
     """`BoundTables`: every (mode, gear)'s Level 1 split at opts.dp_lams costates, and the
     switching costs at Level 2's costate (`dp_candidate_lams`)."""
@@ -1093,8 +1102,13 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
 
 
 def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
-             penalty) -> BoundPath:
+             penalty, n_dep: int | None = None) -> BoundPath:
     """The DP of dp-bound from E_b(t0) to E_b(tf) near goal over n_E E_b points x states.
+
+    n_dep (static): the states from n_dep on have the same candidate at every costate (the
+    modes without a battery-power choice, `lam_states`), so the backward step reads only
+    their first; None: every state's candidates differ. The path is the same either way
+    (equal candidates tie, and ties go to the first).
 
     Backward over the E_b grid with linear interpolation of the value function; its terminal
     cost lam_end (E - goal) + penalty |E - goal| keeps the value function nearly linear in E_b,
@@ -1120,7 +1134,8 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
         return jnp.min(tot, axis=1), jnp.argmin(tot, axis=1)
 
     def q_grid(V1, k_fuel, k_dE):
-        """q_of's value at every grid point: (n_E, S). The grid is uniform, so a candidate
+        """q_of's value at every grid point: (n_E, S) for V1 (n_E, S), k_fuel and k_dE (J, S)
+        (any S and J). The grid is uniform, so a candidate
         (j, s) moves every point by the same u = dE_js / dE cells: its column of V1 is read
         as one contiguous slice from a copy padded with its end values (a slice per
         candidate, where q_of gathers every point; 1.5-1.8x faster per step) and weighted
@@ -1129,10 +1144,11 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
         o = jnp.floor(u)
         f = (u - o)[..., None]
         start = jnp.clip(o, -n_E, n_E - 1).astype(jnp.int32) + n_E  # (J, S) into the copy
-        Vp = jnp.concatenate([jnp.broadcast_to(V1[:1], (n_E, S)), V1,
-                              jnp.broadcast_to(V1[-1:], (n_E + 1, S))]).T  # (S, 3 n_E + 1)
+        n_s = V1.shape[1]
+        Vp = jnp.concatenate([jnp.broadcast_to(V1[:1], (n_E, n_s)), V1,
+                              jnp.broadcast_to(V1[-1:], (n_E + 1, n_s))]).T  # (S, 3 n_E + 1)
         col = lambda s, i: jax.lax.dynamic_slice_in_dim(Vp[s], i, n_E + 1)  # noqa: E731
-        sl = jax.vmap(jax.vmap(col), in_axes=(None, 0))(jnp.arange(S), start)  # (J, S, n_E + 1)
+        sl = jax.vmap(jax.vmap(col), in_axes=(None, 0))(jnp.arange(n_s), start)  # (J, S, n_E+1)
         v = (1 - f) * sl[..., :-1] + f * sl[..., 1:]
         x = jnp.arange(n_E, dtype=dtype) + u[..., None]  # (J, S, n_E) grid coordinate
         inside = (x >= -1e-9) & (x <= n_E - 1 + 1e-9)
@@ -1143,7 +1159,11 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
 
     def back(V1, inp):
         k_fuel, k_dE, C, m = inp
-        Q = q_grid(V1, k_fuel, k_dE)  # (n_E, S)
+        n_d = S if n_dep is None else min(n_dep, S)
+        # (n_E, S): the states from n_d on with their first candidate alone
+        Q = jnp.concatenate([q_grid(V1[:, a:b], k_fuel[:J, a:b], k_dE[:J, a:b])
+                             for a, b, J in ((0, n_d, k_fuel.shape[0]), (n_d, S, 1)) if b > a],
+                            axis=1)
         best, _ = dp.relax_dense(Q.T, C.T)  # best[s_prev, i] = min_s C[s_prev, s] + Q[i, s]
         V = jnp.minimum(best.T, BIG)
         V = jnp.where(m, V, V1)
@@ -1198,7 +1218,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         tab = bound_tables(vp, pred, dt, opts, params)
         d = jnp.diff(jnp.interp(pl.step_bounds(pred), drift.s, drift.dE))  # (T,) per step
         bp = bound_dp(vp, pred, tab._replace(dEb=tab.dEb + d[:, None, None]), goal,
-                      opts.dp_n_E, opts.dp_penalty)
+                      opts.dp_n_E, opts.dp_penalty, lam_states(n_g))
         mode, gear = bp.state // n_g, bp.state % n_g
         own_end = jnp.reshape(goal - E0 - jnp.sum(d), (1,)).astype(dtype)
         plan = make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, dt, opts,

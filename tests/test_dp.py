@@ -282,3 +282,21 @@ def test_bound_dp_vmapped_equals_each_alone():
         np.testing.assert_allclose(np.asarray(batch.cost[b]), np.asarray(one.cost), rtol=1e-12)
         np.testing.assert_allclose(float(batch.E_end[b]), float(one.E_end), rtol=1e-12)
         np.testing.assert_allclose(float(batch.lam0[b]), float(one.lam0), rtol=1e-9)
+
+
+@settings(max_examples=10)
+@given(seed=st.integers(0, 2**31 - 1), standing=st.booleans(), n_dep=st.integers(0, _BS))
+def test_bound_dp_reads_one_candidate_where_they_are_equal(seed, standing, n_dep):
+    """Where the states from n_dep on have the same candidate at every costate (dp-bound's
+    modes without a battery-power choice), reading only their first gives the same DP: path,
+    costs, E_b(tf) and the costate at t0, to the bit."""
+    T, n_E = 6, 9
+    tab, pred, _ = _bound_instance(np.random.default_rng(seed), T, n_E, False, standing,
+                                   np.ones(T, bool))
+    same = lambda a: a.at[:, :, n_dep:].set(a[:, :1, n_dep:])  # noqa: E731
+    tab = tab._replace(fuel=same(tab.fuel), dEb=same(tab.dEb), P_b=same(tab.P_b))
+    goal, penalty = 0.5 * float(_VP.E_b_max), 1.0
+    full = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
+    one = xla.jit(S_.bound_dp, static_argnums=(4, 6))(_VP, pred, tab, goal, n_E, penalty, n_dep)
+    for a, b in zip(full, one, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
