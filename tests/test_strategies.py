@@ -379,14 +379,17 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
         np.testing.assert_allclose(np.asarray(tab.fuel)[:n, j], fuel, rtol=1e-9, atol=0.1)
         np.testing.assert_allclose(np.asarray(tab.dEb)[:n, j], -(Pb + beta * Pb**2),
                                    rtol=1e-9, atol=0.1)
-    # the modes without a battery-power choice split alike at every costate: the DP reads
-    # their first candidate alone (`lam_states`); M_c's do differ
+    # the modes without a battery-power choice split alike at every costate, to the bit, so
+    # that the DP may read their first candidate alone (`lam_states`); M_c's differ
+    from jaxems.levels import powersplit as ps
+
     n_dep = S.lam_states(VP.gear_ratio.shape[-1])
-    for a in (tab.fuel, tab.dEb, tab.P_b):
-        a = np.asarray(a)
-        np.testing.assert_array_equal(a[:, :, n_dep:], np.broadcast_to(a[:, :1, n_dep:],
-                                                                       a[:, :, n_dep:].shape))
-        assert np.any(a[:, :, :n_dep] != a[:, :1, :n_dep])
+    split = xla.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))
+    lo, hi = split(VP, P_d, v, float(tab.lams[0])), split(VP, P_d, v, float(tab.lams[-1]))
+    for f in ("P_b", "P_f", "feasible"):
+        a, b = (np.asarray(getattr(x, f)).reshape(n, -1) for x in (lo, hi))
+        np.testing.assert_array_equal(a[:, n_dep:], b[:, n_dep:])
+        assert f == "feasible" or np.any(a[:, :n_dep] != b[:, :n_dep])
     lam_sw = np.asarray(tab.lam_sw)[:n]
     H = R.split_table(VP, P_d, v, lam_sw).H
     brake = R.ref_braking_loss(VP, H, P_d, 1.0)
