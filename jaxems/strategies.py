@@ -1065,7 +1065,7 @@ def lam_states(n_g: int) -> int:
     """How many of dp-bound's states (mode x n_g gears, mode-major) come first and have a
     battery-power choice that depends on the costate: M_c's. The other modes' split is fixed
     by the demand (M_e: no motor, M_m: no engine, M_o: neither), the same at every costate
-    (tested on `bound_tables`)."""
+    (tested on `mode_gear_split`, at the first and last candidate costate)."""
     assert ps.MC == 0, "M_c's states come first"
     return n_g
 
