@@ -987,8 +987,9 @@ def mpc_params(vp, pred: l3.Prediction, track: pl.Track, dt, opts: Options,
 
 
 def run_multilevel_mpc(route, vp, dt, n_steps: int, opts: Options, params, ctrl=None) -> Run:
-    """The MPC in the plant loop; ctrl: another controller on its `MpcParams` (analyses, e.g.
-    `mpc_level1` at a given costate: experiments/mpc_gap.py), None: the MPC's own."""
+    """The MPC in the plant loop; ctrl: another controller on its `MpcParams` and its state
+    (lam_b, the step of the last Level 2 solve), e.g. `mpc_level1` at a given costate
+    (experiments/mpc_gap.py); None: the MPC's own."""
     pred = level3(route, vp, dt, n_steps)
     track = pl.make_track(route, pred, opts.end_cap)
     p = mpc_params(vp, pred, track, dt, opts, params)
@@ -1022,13 +1023,17 @@ def dp_candidate_lams(n: int):
     return -jnp.exp(jnp.linspace(jnp.log(0.5), jnp.log(6.0), n))
 
 
-def _interp_grid(V, x, dE, n_E):
-    """Linear interpolation of V: (n_E, ...) at grid coordinate x / dE; BIG outside the grid."""
+def _on_grid(u, n_E):
+    """Whether grid coordinate u lies on a grid of n_E points (within rounding)."""
+    return (u >= -1e-9) & (u <= n_E - 1 + 1e-9)
+
+
+def _interp_grid(x, dE, n_E):
+    """Linear interpolation weights at x on a grid of n_E points dE apart: the lower point i0,
+    the fraction f towards the next, and whether x is on the grid (`_on_grid`)."""
     u = x / dE
     i0 = jnp.clip(jnp.floor(u), 0, n_E - 2).astype(jnp.int32)
-    f = u - i0
-    inside = (u >= -1e-9) & (u <= n_E - 1 + 1e-9)
-    return i0, f, inside
+    return i0, u - i0, _on_grid(u, n_E)
 
 
 class BoundTables(NamedTuple):
@@ -1127,7 +1132,7 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
     def q_of(V1, k_fuel, k_dE, E):
         """min over candidates of fuel + V1(E + dE): E (n,) -> (n, S) value, (n, S) arg."""
         x = E[:, None, None] + k_dE[None]  # (n, J, S)
-        i0, f, inside = _interp_grid(V1, x, dE, n_E)
+        i0, f, inside = _interp_grid(x, dE, n_E)
         s_idx = jnp.arange(S)[None, None, :]
         v = (1 - f) * V1[i0, s_idx] + f * V1[i0 + 1, s_idx]
         tot = jnp.where(inside, k_fuel[None] + v, BIG)
@@ -1151,19 +1156,20 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
         sl = jax.vmap(jax.vmap(col), in_axes=(None, 0))(jnp.arange(n_s), start)  # (J, S, n_E+1)
         v = (1 - f) * sl[..., :-1] + f * sl[..., 1:]
         x = jnp.arange(n_E, dtype=dtype) + u[..., None]  # (J, S, n_E) grid coordinate
-        inside = (x >= -1e-9) & (x <= n_E - 1 + 1e-9)
-        return jnp.min(jnp.where(inside, k_fuel[..., None] + v, BIG), axis=0).T
+        return jnp.min(jnp.where(_on_grid(x, n_E), k_fuel[..., None] + v, BIG), axis=0).T
 
     m_init, g_init = _init_state(pred)
     s_init = jnp.where(m_init >= 0, m_init * (S // ps.N_MODES) + g_init, -1)
 
+    # the backward step's states in parts (first, last, candidates read): the states from
+    # n_dep on with their first candidate alone
+    n_d = S if n_dep is None else min(n_dep, S)
+    parts = [(a, b, n) for a, b, n in ((0, n_d, tab.fuel.shape[1]), (n_d, S, 1)) if b > a]
+
     def back(V1, inp):
         k_fuel, k_dE, C, m = inp
-        n_d = S if n_dep is None else min(n_dep, S)
-        # (n_E, S): the states from n_d on with their first candidate alone
-        Q = jnp.concatenate([q_grid(V1[:, a:b], k_fuel[:J, a:b], k_dE[:J, a:b])
-                             for a, b, J in ((0, n_d, k_fuel.shape[0]), (n_d, S, 1)) if b > a],
-                            axis=1)
+        Q = jnp.concatenate([q_grid(V1[:, a:b], k_fuel[:n, a:b], k_dE[:n, a:b])
+                             for a, b, n in parts], axis=1)  # (n_E, S)
         best, _ = dp.relax_dense(Q.T, C.T)  # best[s_prev, i] = min_s C[s_prev, s] + Q[i, s]
         V = jnp.minimum(best.T, BIG)
         V = jnp.where(m, V, V1)
@@ -1190,7 +1196,7 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
     (E_end, _), (path, lam_path, cost, Pb_path) = jax.lax.scan(
         fwd, (jnp.asarray(E0, dtype), s_init), (V_next, tab.fuel, tab.dEb, tab.C, pred.mask,
                                                  tab.P_b))
-    i0, _, _ = _interp_grid(V_0, E0, dE, n_E)
+    i0, _, _ = _interp_grid(E0, dE, n_E)
     lam0 = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE
     return BoundPath(state=path, lam=lam_path, cost=cost, P_b=Pb_path, E_end=E_end, lam0=lam0)
 
