@@ -1036,21 +1036,48 @@ def _interp_grid(x, dE, n_E):
     return i0, u - i0, _on_grid(u, n_E)
 
 
-class BoundTables(NamedTuple):
-    """What dp-bound's DP needs of one vehicle on one prediction (J candidates per state).
-
-    fuel, dEb, P_b: (T, J, S) each candidate's fuel (J; BIG where infeasible), E_b change (J)
-    and battery power (W); C: (T, S, S) Level 1's switching costs, priced at lam_sw: (T,)
-    Level 2's costate; lams: (J,) the candidates' costates; lam_end: () the worth of E_b(tf)
-    beyond the goal (Level 2's costate on its last piece)."""
+class BoundCands(NamedTuple):
+    """Battery-power candidates of some of dp-bound's states: fuel (J; BIG where infeasible),
+    E_b change (J) and battery power (W), each (T, J, n) for n states with J candidates each,
+    or (T, n) for n states with one candidate."""
 
     fuel: Any
     dEb: Any
     P_b: Any
+
+
+class BoundTables(NamedTuple):
+    """What dp-bound's DP needs of one vehicle on one prediction.
+
+    dep: `BoundCands` (T, J, n_dep) of the first n_dep states, whose battery power depends on
+    the costate (M_c's), at the J candidate costates lams: (J,); fix:
+    `BoundCands` (T, S - n_dep) of the other states, whose split is the same at every costate
+    (one candidate, taken at lams[0]); C: (T, S, S) Level 1's switching costs, priced at
+    lam_sw: (T,) Level 2's costate; lam_end: () the worth of E_b(tf) beyond the goal (Level
+    2's costate on its last piece). Kept apart, the fixed states' split is computed once
+    instead of at every candidate costate (`full` joins them)."""
+
+    dep: BoundCands
+    fix: BoundCands
     C: Any
     lams: Any
     lam_end: Any
     lam_sw: Any
+
+    def full(self) -> BoundCands:
+        """Every state's candidates, (T, J, S) each: the fixed states' one repeated J times."""
+        J = self.lams.shape[-1]
+
+        def join(a, b):
+            b = jnp.broadcast_to(b[..., None, :], b.shape[:-1] + (J, b.shape[-1]))
+            return jnp.concatenate([a, b], axis=-1)
+
+        return BoundCands(*(join(a, b) for a, b in zip(self.dep, self.fix, strict=True)))
+
+    def with_drift(self, d):
+        """The tables with d: (T,) added to every candidate's E_b change of each step."""
+        return self._replace(dep=self.dep._replace(dEb=self.dep.dEb + d[:, None, None]),
+                             fix=self.fix._replace(dEb=self.fix.dEb + d[:, None]))
 
 
 class BoundPath(NamedTuple):
@@ -1066,54 +1093,53 @@ class BoundPath(NamedTuple):
     lam0: Any
 
 
-def lam_states(n_g: int) -> int:
-    """How many of dp-bound's states (mode x n_g gears, mode-major) come first and have a
-    battery-power choice that depends on the costate: M_c's. The other modes' split is fixed
-    by the demand (M_e: no motor, M_m: no engine, M_o: neither), the same at every costate
-    (tested on `mode_gear_split`, at the first and last candidate costate)."""
-    assert ps.MC == 0, "M_c's states come first"
-    return n_g
-
-
 def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTables:
-    """`BoundTables`: every (mode, gear)'s Level 1 split at opts.dp_lams costates, and the
-    switching costs at Level 2's costate (`dp_candidate_lams`)."""
+    """`BoundTables`: M_c's split in every gear at opts.dp_lams costates
+    (`dp_candidate_lams`), the other modes' at the first of them, and the switching costs at
+    Level 2's costate."""
     w0 = jnp.full_like(pred.v, vp.w_pred)
     c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w0, pred.mask, dt)  # prices switching
     lam_sw = c2.lam
     lam_end = jnp.sum(jnp.where(l3.last_node(pred.mask), lam_sw, 0.0))
     lams = dp_candidate_lams(opts.dp_lams).astype(pred.v.dtype)
+    # M_c alone chooses its battery power; the other modes' split is fixed by the demand (M_e:
+    # no motor, M_m: no engine, M_o: neither), the same at every costate (tested on
+    # `mode_gear_split`). M_c's states come first (state = mode x n_gears + gear).
+    assert ps.MC == 0, "M_c's states come first"
+    others = tuple(m for m in range(ps.N_MODES) if m != ps.MC)
 
-    # candidate splits: (T, J, S) battery power, fuel power; infeasible -> BIG cost
-    def cands(P_d, v):
-        sp = jax.vmap(lambda lam: ps.mode_gear_split(vp, P_d, v, lam))(lams)
-        J = lams.shape[0]
-        return (sp.P_b.reshape(J, -1), sp.P_f.reshape(J, -1), sp.feasible.reshape(J, -1))
+    def split(P_d, v, lam, modes):  # (P_b, P_f, feasible), each (n_modes * n_gears,)
+        sp = ps.mode_gear_split(vp, P_d, v, lam, modes)
+        return sp.P_b.reshape(-1), sp.P_f.reshape(-1), sp.feasible.reshape(-1)
 
-    Pb, Pf, feas = jax.vmap(cands)(pred.P_d, pred.v)
-    dEb = -pt.battery_internal(vp, Pb) * dt  # (T, J, S) E_b increment
-    fuel = jnp.where(feas, Pf * dt, BIG)
-    any_feas = jnp.any(feas, axis=(1, 2))
-    fuel = jnp.where(any_feas[:, None, None], fuel, 0.0)  # a step beyond capability: free
-    dEb = jnp.where(any_feas[:, None, None], dEb, 0.0)
+    # (T, J, n_g) M_c's candidates; (T, S - n_g) the others' one
+    c_dep = jax.vmap(lambda P_d, v: jax.vmap(lambda lam: split(P_d, v, lam, (ps.MC,)))(lams))(
+        pred.P_d, pred.v)
+    c_fix = jax.vmap(lambda P_d, v: split(P_d, v, lams[0], others))(pred.P_d, pred.v)
+    any_feas = jnp.any(c_dep[2], axis=(1, 2)) | jnp.any(c_fix[2], axis=1)
+
+    def cands(Pb, Pf, feas):  # infeasible -> BIG cost; a step beyond capability: free
+        some = any_feas.reshape((-1,) + (1,) * (Pb.ndim - 1))
+        dEb = -pt.battery_internal(vp, Pb) * dt  # E_b increment
+        return BoundCands(fuel=jnp.where(some, jnp.where(feas, Pf * dt, BIG), 0.0),
+                          dEb=jnp.where(some, dEb, 0.0), P_b=Pb)
 
     def costs(P_d, v, g, lam):  # the switching costs of Level 1 (with what braking loses)
         H = ps.mode_gear_split(vp, P_d, v, lam).H
         return sw.switch_cost_matrix(vp, v, g, lam, params, l1.braking_loss(vp, H, P_d, dt))
 
     Cs = jax.vmap(costs)(pred.P_d, pred.v, pred.grade, lam_sw)  # (T, S, S)
-    return BoundTables(fuel=fuel, dEb=dEb, P_b=Pb, C=Cs, lams=lams, lam_end=lam_end,
+    return BoundTables(dep=cands(*c_dep), fix=cands(*c_fix), C=Cs, lams=lams, lam_end=lam_end,
                        lam_sw=lam_sw)
 
 
 def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
-             penalty, n_dep: int | None = None) -> BoundPath:
+             penalty) -> BoundPath:
     """The DP of dp-bound from E_b(t0) to E_b(tf) near goal over n_E E_b points x states.
 
-    n_dep (static): the states from n_dep on have the same candidate at every costate (the
-    modes without a battery-power choice, `lam_states`), so the backward step reads only
-    their first; None: every state's candidates differ. The path is the same either way
-    (equal candidates tie, and ties go to the first).
+    The states of tab.fix have one candidate, which the backward step reads once; the path is
+    the one of the same tables `full` (their candidates repeated over the costates tie, and
+    ties go to the first).
 
     Backward over the E_b grid with linear interpolation of the value function; its terminal
     cost lam_end (E - goal) + penalty |E - goal| keeps the value function nearly linear in E_b,
@@ -1127,7 +1153,8 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
     dE = E_max / (n_E - 1)
     E_grid = jnp.arange(n_E, dtype=dtype) * dE
     E0 = vp.soc0 * E_max
-    S = tab.fuel.shape[-1]
+    n_d = tab.dep.fuel.shape[-1]
+    S = n_d + tab.fix.fuel.shape[-1]
 
     def q_of(V1, k_fuel, k_dE, E):
         """min over candidates of fuel + V1(E + dE): E (n,) -> (n, S) value, (n, S) arg."""
@@ -1161,15 +1188,11 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
     m_init, g_init = _init_state(pred)
     s_init = jnp.where(m_init >= 0, m_init * (S // ps.N_MODES) + g_init, -1)
 
-    # the backward step's states in parts (first, last, candidates read): the states from
-    # n_dep on with their first candidate alone
-    n_d = S if n_dep is None else min(n_dep, S)
-    parts = [(a, b, n) for a, b, n in ((0, n_d, tab.fuel.shape[1]), (n_d, S, 1)) if b > a]
-
     def back(V1, inp):
-        k_fuel, k_dE, C, m = inp
-        Q = jnp.concatenate([q_grid(V1[:, a:b], k_fuel[:n, a:b], k_dE[:n, a:b])
-                             for a, b, n in parts], axis=1)  # (n_E, S)
+        (f_dep, dE_dep), (f_fix, dE_fix), C, m = inp
+        # the states in their parts: (J, n_d) and one candidate each of the others
+        parts = [(V1[:, :n_d], f_dep, dE_dep), (V1[:, n_d:], f_fix[None], dE_fix[None])]
+        Q = jnp.concatenate([q_grid(*p) for p in parts if p[0].shape[1]], axis=1)  # (n_E, S)
         best, _ = dp.relax_dense(Q.T, C.T)  # best[s_prev, i] = min_s C[s_prev, s] + Q[i, s]
         V = jnp.minimum(best.T, BIG)
         V = jnp.where(m, V, V1)
@@ -1177,7 +1200,8 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
 
     def fwd(carry, inp):
         E, s = carry
-        V1, k_fuel, k_dE, C, m, k_Pb = inp
+        V1, dep, fix, C, m = inp
+        k_fuel, k_dE, k_Pb = tab._replace(dep=dep, fix=fix).full()  # (J, S) each: every state's
         Q, jarg = q_of(V1, k_fuel, k_dE, E[None])  # (1, S)
         sw_cost = jnp.where(s >= 0, C[jnp.maximum(s, 0)], 0.0)
         tot = Q[0] + sw_cost
@@ -1191,11 +1215,12 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
 
     terminal = tab.lam_end * (E_grid - goal) + penalty * jnp.abs(E_grid - goal)
     V_T = jnp.broadcast_to(terminal[:, None], (n_E, S))
-    V_0, V_next = jax.lax.scan(back, V_T, (tab.fuel, tab.dEb, tab.C, pred.mask), reverse=True)
+    V_0, V_next = jax.lax.scan(back, V_T, ((tab.dep.fuel, tab.dep.dEb),
+                                           (tab.fix.fuel, tab.fix.dEb), tab.C, pred.mask),
+                               reverse=True)
     # V_next[k] is the value after step k (before step k+1)
     (E_end, _), (path, lam_path, cost, Pb_path) = jax.lax.scan(
-        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, tab.fuel, tab.dEb, tab.C, pred.mask,
-                                                 tab.P_b))
+        fwd, (jnp.asarray(E0, dtype), s_init), (V_next, tab.dep, tab.fix, tab.C, pred.mask))
     i0, _, _ = _interp_grid(E0, dE, n_E)
     lam0 = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE
     return BoundPath(state=path, lam=lam_path, cost=cost, P_b=Pb_path, E_end=E_end, lam0=lam0)
@@ -1223,8 +1248,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         track = pl.make_track(route, pred, opts.end_cap)
         tab = bound_tables(vp, pred, dt, opts, params)
         d = jnp.diff(jnp.interp(pl.step_bounds(pred), drift.s, drift.dE))  # (T,) per step
-        bp = bound_dp(vp, pred, tab._replace(dEb=tab.dEb + d[:, None, None]), goal,
-                      opts.dp_n_E, opts.dp_penalty, lam_states(n_g))
+        bp = bound_dp(vp, pred, tab.with_drift(d), goal, opts.dp_n_E, opts.dp_penalty)
         mode, gear = bp.state // n_g, bp.state % n_g
         own_end = jnp.reshape(goal - E0 - jnp.sum(d), (1,)).astype(dtype)
         plan = make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, dt, opts,

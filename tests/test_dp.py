@@ -194,7 +194,8 @@ _VP = load_vehicle("reference_truck")
 
 
 def _bound_instance(rng, T, n_E, aligned, standing, mask, reach=1.7):
-    """Random tables for `bound_dp`: fuel (T, J, S) with some infeasible (BIG) entries, E_b
+    """Random tables for `bound_dp` (every state's candidates in `dep`): fuel (T, J, S) with
+    some infeasible (BIG) entries, E_b
     changes (multiples of the grid spacing where aligned, else within +-reach cells),
     switching costs (T, S, S)."""
     E_max = float(_VP.E_b_max)
@@ -207,9 +208,10 @@ def _bound_instance(rng, T, n_E, aligned, standing, mask, reach=1.7):
     fuel[rng.random(fuel.shape) < 0.1] = S_.BIG
     C = rng.uniform(0.0, 3e4, (T, _BS, _BS))
     C[:, np.arange(_BS), np.arange(_BS)] = 0.0
-    tab = S_.BoundTables(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
-                         P_b=jnp.asarray(rng.uniform(-1e5, 1e5, fuel.shape)), C=jnp.asarray(C),
-                         lams=jnp.asarray(-np.arange(1.0, _BJ + 1)),
+    dep = S_.BoundCands(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
+                        P_b=jnp.asarray(rng.uniform(-1e5, 1e5, fuel.shape)))
+    tab = S_.BoundTables(dep=dep, fix=S_.BoundCands(*(jnp.zeros((T, 0)),) * 3),
+                         C=jnp.asarray(C), lams=jnp.asarray(-np.arange(1.0, _BJ + 1)),
                          lam_end=jnp.asarray(rng.uniform(-3.0, -1.0)), lam_sw=None)
     pred = _Pred(v=jnp.ones(T), mask=jnp.asarray(mask),
                  v_ref=jnp.full(T + 1, 0.0 if standing else 5.0))
@@ -218,7 +220,8 @@ def _bound_instance(rng, T, n_E, aligned, standing, mask, reach=1.7):
 
 
 def _ref_bound(tab, pred, s_init, goal, n_E, penalty):
-    return R.ref_bound_dp(tab.fuel, tab.dEb, tab.C, np.asarray(pred.mask), s_init,
+    full = tab.full()
+    return R.ref_bound_dp(full.fuel, full.dEb, tab.C, np.asarray(pred.mask), s_init,
                           float(_VP.soc0 * _VP.E_b_max), float(_VP.E_b_max), goal,
                           float(tab.lam_end), penalty, n_E)
 
@@ -259,7 +262,8 @@ def test_bound_dp_is_the_optimum_where_its_grid_is_exact(seed, standing):
     bp = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
     d = float(bp.E_end) - goal
     total = float(np.sum(bp.cost)) + float(tab.lam_end) * d + penalty * abs(d)
-    best = R.brute_bound(tab.fuel, tab.dEb, tab.C, s_init, float(_VP.soc0 * _VP.E_b_max),
+    full = tab.full()
+    best = R.brute_bound(full.fuel, full.dEb, tab.C, s_init, float(_VP.soc0 * _VP.E_b_max),
                          float(_VP.E_b_max), goal, float(tab.lam_end), penalty)
     assert total == pytest.approx(best, rel=1e-12)
     assert _ref_bound(tab, pred, s_init, goal, n_E, penalty).value == pytest.approx(best,
@@ -285,18 +289,25 @@ def test_bound_dp_vmapped_equals_each_alone():
 
 
 @settings(max_examples=10)
-@given(seed=st.integers(0, 2**31 - 1), standing=st.booleans(), n_dep=st.integers(0, _BS))
-def test_bound_dp_reads_one_candidate_where_they_are_equal(seed, standing, n_dep):
+@given(seed=st.integers(0, 2**31 - 1), standing=st.booleans(), n_dep=st.integers(0, _BS),
+       pad=st.integers(0, 2))
+def test_bound_dp_reads_one_candidate_where_they_are_equal(seed, standing, n_dep, pad):
     """Where the states from n_dep on have the same candidate at every costate (dp-bound's
-    modes without a battery-power choice), reading only their first gives the same DP: path,
-    costs, E_b(tf) and the costate at t0, to the bit."""
+    modes without a battery-power choice), tables that hold their one candidate apart
+    (`BoundTables.fix`, read once by the backward step) give the same DP as the tables with it
+    repeated over the costates: path, costate, costs, battery power, E_b(tf) and the costate
+    at t0, to the bit; `full` gives those repeated tables back."""
     T, n_E = 6, 9
     tab, pred, _ = _bound_instance(np.random.default_rng(seed), T, n_E, False, standing,
-                                   np.ones(T, bool))
+                                   np.arange(T) < T - pad)
     same = lambda a: a.at[:, :, n_dep:].set(a[:, :1, n_dep:])  # noqa: E731
-    tab = tab._replace(fuel=same(tab.fuel), dEb=same(tab.dEb), P_b=same(tab.P_b))
+    tab = tab._replace(dep=S_.BoundCands(*map(same, tab.dep)))
+    split = tab._replace(dep=S_.BoundCands(*(a[:, :, :n_dep] for a in tab.dep)),
+                         fix=S_.BoundCands(*(a[:, 0, n_dep:] for a in tab.dep)))
+    for a, b in zip(split.full(), tab.dep, strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     goal, penalty = 0.5 * float(_VP.E_b_max), 1.0
     full = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
-    one = xla.jit(S_.bound_dp, static_argnums=(4, 6))(_VP, pred, tab, goal, n_E, penalty, n_dep)
+    one = _bound_dp(_VP, pred, split, goal, n_E, penalty)
     for a, b in zip(full, one, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

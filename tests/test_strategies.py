@@ -368,6 +368,7 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
     n = int(m.sum())
     P_d, v, grade = (np.asarray(a)[:n] for a in (pred.P_d, pred.v, pred.grade))
     beta = float(VP.beta)
+    full = tab.full()
     for j, lam in enumerate(np.asarray(tab.lams)):
         ref = R.split_table(VP, P_d, v, lam)
         feas = ref.feasible.reshape(n, -1)
@@ -376,14 +377,16 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
         Pb = np.where(some, ref.P_b.reshape(n, -1), 0.0)
         # (the table's split is analytic, the reference's a search on a function that is flat
         # to rounding within about 0.01 W of its minimum)
-        np.testing.assert_allclose(np.asarray(tab.fuel)[:n, j], fuel, rtol=1e-9, atol=0.1)
-        np.testing.assert_allclose(np.asarray(tab.dEb)[:n, j], -(Pb + beta * Pb**2),
+        np.testing.assert_allclose(np.asarray(full.fuel)[:n, j], fuel, rtol=1e-9, atol=0.1)
+        np.testing.assert_allclose(np.asarray(full.P_b)[:n, j], Pb, rtol=1e-9, atol=0.1)
+        np.testing.assert_allclose(np.asarray(full.dEb)[:n, j], -(Pb + beta * Pb**2),
                                    rtol=1e-9, atol=0.1)
     # the modes without a battery-power choice split alike at every costate, to the bit, so
-    # that the DP may read their first candidate alone (`lam_states`); M_c's differ
+    # that the tables hold their one candidate apart (`BoundTables.fix`); M_c's differ
     from jaxems.levels import powersplit as ps
 
-    n_dep = S.lam_states(VP.gear_ratio.shape[-1])
+    n_dep = VP.gear_ratio.shape[-1]
+    assert tab.dep.fuel.shape[1:] == (opts.dp_lams, n_dep) and tab.fix.fuel.shape[1] == 3 * n_dep
     split = xla.jit(jax.vmap(ps.mode_gear_split, in_axes=(None, 0, 0, None)))
     lo, hi = split(VP, P_d, v, float(tab.lams[0])), split(VP, P_d, v, float(tab.lams[-1]))
     for f in ("P_b", "P_f", "feasible"):

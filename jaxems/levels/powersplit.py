@@ -254,16 +254,19 @@ def split_state(vp: VehicleParams, P_d, v, lam, mode, gear) -> Split:
                       jnp.asarray(MOTOR_CONNECTED)[mode], gear == 0)
 
 
-def mode_gear_split(vp: VehicleParams, P_d, v, lam) -> Split:
+def mode_gear_split(vp: VehicleParams, P_d, v, lam, modes: tuple | None = None) -> Split:
     """The optimal split of every (mode, gear) at one time step: `Split` of shape (4, n_gears).
 
     P_d: driveline power demand (W), v: vehicle speed (m/s), lam: battery costate lambda_b (-),
-    all scalars. `vmap` over the (M, G) grid; map over time with `jax.vmap` at the edge.
+    all scalars; modes (static): the mode indices to split, in that order (Split of shape
+    (len(modes), n_gears)), None: all four. `vmap` over the (M, G) grid; map over time with
+    `jax.vmap` at the edge.
     """
     w = pt.shaft_speeds(vp, v)  # (G,)
     n_g = w.shape[-1]
-    ce = jnp.array(ENGINE_CONNECTED)
-    cm = jnp.array(MOTOR_CONNECTED)
+    modes = tuple(range(N_MODES)) if modes is None else tuple(modes)
+    ce = jnp.array([ENGINE_CONNECTED[m] for m in modes])
+    cm = jnp.array([MOTOR_CONNECTED[m] for m in modes])
     launch = jnp.arange(n_g) == 0  # gear 1 may slip its clutch below idle speed
     per_gear = jax.vmap(_split_one, in_axes=(None, None, 0, None, None, None, 0))
     per_mode = jax.vmap(per_gear, in_axes=(None, None, None, None, 0, 0, None))
