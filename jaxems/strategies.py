@@ -533,7 +533,10 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     T = pred.v.shape[0]
     k = jnp.arange(T)
     dtype = pred.v.dtype
-    trac = l1.traction_table(vp, pred.v, pred.grade, params)  # the same for every lambda_b
+    # the same for every lambda_b: the traction costs and the split of the modes without a
+    # battery-power choice
+    trac = l1.traction_table(vp, pred.v, pred.grade, params)
+    fixed = ps.fixed_split(vp, pred.P_d, pred.v)
     # the DPs in order: the shift's bisection, the two sides, the four candidates, the final
     # plan; one loop with one DP in its body, so that the DP compiles once (at five call sites
     # the stage took about twice the compile time)
@@ -584,7 +587,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
                               sides)
         lam_t = costate(phase, i, a, b, held_err, held, t0, t1)
         # the switching costs along the path only for the final plan, which returns them
-        r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4)
+        r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed)
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the
@@ -604,7 +607,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
 
     half = jnp.full((K,), 1.5, dtype)
     scores = jnp.zeros((6, K), dtype)
-    r0 = jax.eval_shape(lambda: _level1(vp, pred, lam, dt, params, fast, trac))
+    r0 = jax.eval_shape(lambda: _level1(vp, pred, lam, dt, params, fast, trac, True, fixed))
     out0 = (jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), r0),
             jnp.zeros((T,), dtype))
     c = jax.lax.fori_loop(0, p_final + 1, step,
@@ -653,12 +656,13 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status,
     )
 
 
-def _level1(vp, pred, lam, dt, params, fast=None, trac=None, switch_costs=True):
+def _level1(vp, pred, lam, dt, params, fast=None, trac=None, switch_costs=True, fixed=None):
     """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice; trac:
-    `level1.traction_table` of the prediction, if at hand; switch_costs: `level1._result`'s)."""
+    `level1.traction_table` and fixed: `powersplit.fixed_split` of the prediction, if at hand;
+    switch_costs: `level1._result`'s)."""
     m0, g0 = _init_state(pred)
     return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
-                           fast, trac, switch_costs)
+                           fast, trac, switch_costs, fixed)
 
 
 def _engine_speed_nodes(route, pred, w_steps):
@@ -1102,11 +1106,9 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
     lam_sw = c2.lam
     lam_end = jnp.sum(jnp.where(l3.last_node(pred.mask), lam_sw, 0.0))
     lams = dp_candidate_lams(opts.dp_lams).astype(pred.v.dtype)
-    # M_c alone chooses its battery power; the other modes' split is fixed by the demand (M_e:
-    # no motor, M_m: no engine, M_o: neither), the same at every costate (tested on
-    # `mode_gear_split`). M_c's states come first (state = mode x n_gears + gear).
-    assert ps.MC == 0, "M_c's states come first"
-    others = tuple(m for m in range(ps.N_MODES) if m != ps.MC)
+    # M_c alone chooses its battery power; the other modes' split is the same at every costate
+    # (`powersplit.FIXED_MODES`). M_c's states come first (state = mode x n_gears + gear).
+    assert ps.MC == 0 and ps.FIXED_MODES == (1, 2, 3), "M_c's states come first"
 
     def split(P_d, v, lam, modes):  # (P_b, P_f, feasible), each (n_modes * n_gears,)
         sp = ps.mode_gear_split(vp, P_d, v, lam, modes)
@@ -1115,7 +1117,7 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
     # (T, J, n_g) M_c's candidates; (T, S - n_g) the others' one
     c_dep = jax.vmap(lambda P_d, v: jax.vmap(lambda lam: split(P_d, v, lam, (ps.MC,)))(lams))(
         pred.P_d, pred.v)
-    c_fix = jax.vmap(lambda P_d, v: split(P_d, v, lams[0], others))(pred.P_d, pred.v)
+    c_fix = jax.vmap(lambda P_d, v: split(P_d, v, lams[0], ps.FIXED_MODES))(pred.P_d, pred.v)
     any_feas = jnp.any(c_dep[2], axis=(1, 2)) | jnp.any(c_fix[2], axis=1)
 
     def cands(Pb, Pf, feas):  # infeasible -> BIG cost; a step beyond capability: free

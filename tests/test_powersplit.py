@@ -1,6 +1,7 @@
 """Level 1 split kernel: P_b* of every (mode, gear) against a brute-force search over a fine
 P_b grid within the limits (plain NumPy model), and the explicit Table 6 solution."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from hypothesis import given, settings
@@ -14,6 +15,13 @@ from jaxems.reference import ref_split
 VP = load_vehicle()
 CONV = VP.conventional()
 split_j = xla.jit(ps.mode_gear_split)
+_H_all = xla.jit(ps.hamiltonian_H)
+_H_fixed = xla.jit(lambda vp, P_d, v, lam: ps.hamiltonian_H(vp, P_d, v, lam,
+                                                             ps.fixed_split(vp, P_d, v)))
+_fixed = xla.jit(ps.fixed_split)
+_split_fixed = xla.jit(jax.vmap(lambda vp, P_d, v, lam: ps.mode_gear_split(vp, P_d, v, lam,
+                                                                          ps.FIXED_MODES),
+                                in_axes=(None, 0, 0, 0)))
 
 def _check(vp, P_d, v, lam):
     s = split_j(vp, P_d, v, lam)
@@ -91,3 +99,30 @@ def test_optimal_mode_gear_is_the_table_minimum():
     # the paper's narrative: motor-only on the flat at 25 km/h; recuperation on the -6 % slope
     assert int(m[0]) == ps.MM
     assert int(m[4]) == ps.MM
+
+
+@settings(max_examples=10)
+@given(seed=st.integers(0, 2**31 - 1), conventional=st.booleans())
+def test_fixed_modes_split_alike_at_every_costate(seed, conventional):
+    """The modes without a battery-power choice (`FIXED_MODES`) split alike at every
+    lambda_b <= 0, to the bit (`fixed_split`, computed once); the Hamiltonian formed from that
+    split (`hamiltonian_H` with it) equals the full table's for those modes to the bit, and
+    M_c's, split alone, to rounding."""
+    rng = np.random.default_rng(seed)
+    vp = CONV if conventional else VP
+    n = 24
+    P_d = jnp.asarray(rng.uniform(-4e5, 5e5, n))
+    v = jnp.asarray(np.where(rng.random(n) < 0.2, 0.0, rng.uniform(0.0, 28.0, n)))
+    lam = jnp.asarray(np.concatenate([[-6.0, -0.3, 0.0], rng.uniform(-6.0, 0.0, n - 3)]))
+    fx = _fixed(vp, P_d, v)
+    sp = _split_fixed(vp, P_d, v, lam)
+    np.testing.assert_array_equal(np.asarray(sp.P_f), np.asarray(fx.P_f))
+    np.testing.assert_array_equal(np.asarray(sp.feasible), np.asarray(fx.feasible))
+    Pb = np.asarray(sp.P_b)
+    np.testing.assert_allclose(np.asarray(fx.P_bi), Pb + float(vp.beta) * Pb * Pb, rtol=1e-14)
+    H, Hf = np.asarray(_H_all(vp, P_d, v, lam)), np.asarray(_H_fixed(vp, P_d, v, lam))
+    np.testing.assert_array_equal(Hf[:, 1:], H[:, 1:])
+    assert np.array_equal(np.isinf(Hf), np.isinf(H))
+    f = np.isfinite(H[:, 0])
+    np.testing.assert_allclose(Hf[:, 0][f], H[:, 0][f], rtol=1e-12, atol=1e-6)
+    assert ps.FIXED_MODES == (ps.ME, ps.MM, ps.MO)

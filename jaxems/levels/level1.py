@@ -54,7 +54,7 @@ from .powersplit import (
     MO,
     MOTOR_CONNECTED,
     N_MODES,
-    hamiltonian_table,
+    hamiltonian_H,
     split_state,
 )
 
@@ -367,13 +367,14 @@ class _Tables(NamedTuple):
     brake: jax.Array  # (T, 3, S) J, `braking_loss`
 
 
-def _tables(vp, P_d, v, grade, lam, dt, params, trac=None) -> _Tables:
-    """The DP's inputs; trac: `traction_table(vp, v, grade, params)` if already at hand.
+def _tables(vp, P_d, v, grade, lam, dt, params, trac=None, fixed=None) -> _Tables:
+    """The DP's inputs; trac: `traction_table(vp, v, grade, params)` and fixed:
+    `powersplit.fixed_split(vp, P_d, v)` if already at hand (neither depends on lam).
     Only the Hamiltonian H of the split table is kept (the path's split is evaluated again
     along the path by `_result`: keeping every state's powers costs more than that)."""
     T = P_d.shape[0]
     lam = jnp.broadcast_to(jnp.asarray(lam, P_d.dtype), (T,))
-    H_table = hamiltonian_table(vp, P_d, v, lam).H
+    H_table = hamiltonian_H(vp, P_d, v, lam, fixed)
     H = H_table.reshape(T, -1)
     none = ~jnp.any(jnp.isfinite(H), axis=1)
     stage = jnp.where(none[:, None], 0.0, H * dt)
@@ -440,9 +441,9 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params,
 
 # ------------------------------------------------------------------------------ full horizon
 def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
-                 trac=None, switch_costs=True):
+                 trac=None, switch_costs=True, fixed=None):
     TRACES["level1_full"] += 1
-    tb = _tables(vp, P_d, v, grade, lam, dt, params, trac)
+    tb = _tables(vp, P_d, v, grade, lam, dt, params, trac, fixed)
     S = tb.stage.shape[1]
     n_g = S // N_MODES
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)

@@ -54,6 +54,10 @@ N_MODES = 4
 # (engine connected, motor connected) per mode
 ENGINE_CONNECTED = (True, True, False, False)
 MOTOR_CONNECTED = (True, False, True, False)
+# the modes without a battery-power choice for lambda_b <= 0: the demand fixes their split (M_e:
+# no motor, M_m: no engine, and the motor's least power; M_o: neither), the same at every such
+# lambda_b; only M_c's depends on it (`fixed_split`; tested)
+FIXED_MODES = (ME, MM, MO)
 
 
 class Split(NamedTuple):
@@ -277,6 +281,38 @@ def hamiltonian_table(vp: VehicleParams, P_d, v, lam) -> Split:
     """`mode_gear_split` over a time grid: P_d, v: (T,), lam: () or (T,) -> Split of (T, 4, G)."""
     lam = jnp.broadcast_to(lam, jnp.shape(P_d))
     return jax.vmap(mode_gear_split, in_axes=(None, 0, 0, 0))(vp, P_d, v, lam)
+
+
+class FixedSplit(NamedTuple):
+    """The split of `FIXED_MODES` at one step or over a time grid, which does not depend on
+    lambda_b <= 0: P_f (W) fuel power, P_bi (W) the battery's internal power
+    (`powertrain.battery_internal` of P_b), feasible; each (..., 3, G)."""
+
+    P_f: jax.Array
+    P_bi: jax.Array
+    feasible: jax.Array
+
+
+def fixed_split(vp: VehicleParams, P_d, v) -> FixedSplit:
+    """`FixedSplit` over a time grid (P_d, v: (T,)): once for every lambda_b <= 0."""
+    def one(P_d, v):
+        sp = mode_gear_split(vp, P_d, v, -1.0, FIXED_MODES)
+        return FixedSplit(P_f=sp.P_f, P_bi=pt.battery_internal(vp, sp.P_b), feasible=sp.feasible)
+
+    return jax.vmap(one)(P_d, v)
+
+
+def hamiltonian_H(vp: VehicleParams, P_d, v, lam, fixed: FixedSplit | None = None):
+    """(T, 4, G) W: `hamiltonian_table`'s H alone. With ``fixed`` (`fixed_split` of the same
+    P_d, v; lam <= 0) only M_c is split at lam, and the other modes' H = P_f - lam P_bi is
+    formed from their fixed split: the same values, to the bit (tested)."""
+    if fixed is None:
+        return hamiltonian_table(vp, P_d, v, lam).H
+    assert MC == 0 and FIXED_MODES == (1, 2, 3), "M_c first, then the fixed modes"
+    lam = jnp.broadcast_to(lam, jnp.shape(P_d))
+    H_c = jax.vmap(lambda P_d, v, lam: mode_gear_split(vp, P_d, v, lam, (MC,)).H)(P_d, v, lam)
+    H_f = jnp.where(fixed.feasible, fixed.P_f - lam[:, None, None] * fixed.P_bi, jnp.inf)
+    return jnp.concatenate([H_c, H_f], axis=1)
 
 
 def optimal_mode_gear(split: Split):
