@@ -482,3 +482,47 @@ def test_horizon_on_guard_I3b():
     assert e_lo >= float(VP.E_b_max) and e_hi <= 0.0
     # the balanced mix keeps E_b mid-range
     assert abs(float(h.margin) - 2.0e6) < 1e-3 * float(VP.E_b_max)
+
+
+@settings(max_examples=30)
+@given(guard=st.floats(-5.5, -0.5), shift_ulps=st.integers(-3000, 3000),
+       dtype=st.sampled_from(["float32", "float64"]))
+def test_bracket_held_puts_the_ends_back_on_their_sides(guard, shift_ulps, dtype):
+    """`bracket_held`: a bisection's ends evaluated again where a tie rounds otherwise (here a
+    step in the end value whose place moves by shift_ulps between the loop and the second
+    evaluation) move outward until they lie on the sides the loop left them; ends that hold,
+    and ends the loop never moved, stay as they are, to the bit."""
+    import jax.numpy as jnp
+
+    from jaxems.levels.battery import bracket_held
+
+    dt_ = jnp.dtype(dtype)
+    lam_lo, lam_hi = jnp.asarray(-6.0, dt_), jnp.asarray(-0.3, dt_)
+    # three pieces: a guard inside the bracket, and two whose target no costate reaches
+    guards = jnp.asarray([guard, -7.0, 1.0], dt_)
+
+    def end_value(lam, g):  # 1 (too much left) below the guard, 0 from it on
+        return jnp.where(lam < g, 1.0, 0.0).astype(dt_)
+
+    up = lambda e: e > 0.5  # noqa: E731
+    lo, hi = jnp.full(3, lam_lo), jnp.full(3, lam_hi)
+    for _ in range(80):  # the loop's bisection, on the true guard
+        mid = 0.5 * (lo + hi)
+        u = up(end_value(mid, guards))
+        lo, hi = jnp.where(u, mid, lo), jnp.where(u, hi, mid)
+    ulp = float(jnp.finfo(dt_).eps) * abs(guard)
+    moved = guards + jnp.asarray([shift_ulps * ulp, 0.0, 0.0], dt_)
+
+    def ends(lo, hi):  # the second evaluation, its step moved
+        return end_value(lo, moved), end_value(hi, moved)
+
+    lo2, hi2, (e_lo, e_hi) = bracket_held(ends, up, lo, hi, lam_lo, lam_hi, lambda o: o)
+    assert bool(up(e_lo[0])) and not bool(up(e_hi[0]))
+    assert float(lo2[0]) <= float(lo[0]) and float(hi2[0]) >= float(hi[0])
+    # within the step that reaches the moved guard (16 ulps, times 4 a round)
+    assert float(hi2[0] - lo2[0]) <= 4 * abs(shift_ulps) * ulp + 64 * ulp + float(hi[0] - lo[0])
+    if lo[0] < moved[0] <= hi[0]:  # the loop's ends hold: nothing moves
+        assert float(lo2[0]) == float(lo[0]) and float(hi2[0]) == float(hi[0])
+    # pieces whose ends the loop never moved (no costate reaches their target) stay
+    np.testing.assert_array_equal(np.asarray(lo2[1:]), np.asarray(lo[1:]))
+    np.testing.assert_array_equal(np.asarray(hi2[1:]), np.asarray(hi[1:]))

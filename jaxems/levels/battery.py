@@ -472,6 +472,40 @@ class _Pieces(NamedTuple):
     sw_ok: jax.Array  # (K,) bool: an I2b sequence within the limits exists (`_funnel`)
 
 
+def bracket_held(ends, up, lo, hi, lam_lo, lam_hi, end_values, rounds: int = 8):
+    """A bisection's bracket [lo, hi] whose ends, evaluated again, are on the sides the
+    bisection left them: up(lo) and not up(hi), wherever it moved them from [lam_lo, lam_hi].
+
+    ends(lo, hi) -> out, the evaluation at the ends; end_values(out) -> (e_lo, e_hi), what up
+    (-> bool, per piece) decides on. Where an end evaluates on the wrong side (a tie that rounds
+    otherwise here than in the bisection's loop), it moves outward by 16 ulps of the costate,
+    then 4 times more each round, at most `rounds` rounds, never beyond lam_lo / lam_hi. Where
+    every end holds (nearly always) the loop does not run and (lo, hi, out) are the first
+    evaluation's. Returns (lo, hi, out)."""
+    dtype = lo.dtype
+    ulp = jnp.finfo(dtype).eps * jnp.maximum(jnp.maximum(jnp.abs(lo), jnp.abs(hi)), 1.0)
+
+    def broken(lo, hi, out):
+        e_lo, e_hi = end_values(out)
+        return (lo > lam_lo) & ~up(e_lo), (hi < lam_hi) & up(e_hi)
+
+    def cond(c):
+        lo, hi, out, n = c
+        b_lo, b_hi = broken(lo, hi, out)
+        return (n < rounds) & jnp.any(b_lo | b_hi)
+
+    def body(c):
+        lo, hi, out, n = c
+        b_lo, b_hi = broken(lo, hi, out)
+        step = 16.0 * ulp * (4.0 ** n.astype(dtype))
+        lo = jnp.where(b_lo, jnp.maximum(lo - step, lam_lo), lo)
+        hi = jnp.where(b_hi, jnp.minimum(hi + step, lam_hi), hi)
+        return lo, hi, ends(lo, hi), n + 1
+
+    lo, hi, out, _ = jax.lax.while_loop(cond, body, (lo, hi, ends(lo, hi), jnp.int32(0)))
+    return lo, hi, out
+
+
 def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol, n_iter):
     """Bisect every piece at once; mix the bracketing trajectories (I2a)."""
     K = bnd.shape[0] - 1
@@ -507,10 +541,24 @@ def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol
     # are passed after it: carried too, XLA fused the pass into each of their four selects
     # and ran it four times per halving (3x slower under the elemental emitters)
     _, lo, hi = jax.lax.while_loop(cond, body, (jnp.int32(0), lo, hi))
-    dE_lo, Ef_lo = run(lo[pid], dt)
-    dE_hi, Ef_hi = run(hi[pid], dt)
-    end_p = _piece_ends(dE_lo, pid, bnd, E_start, sat, E_max)
-    end_m = _piece_ends(dE_hi, pid, bnd, E_start, sat, E_max)
+
+    def ends(lo, hi):  # the trajectories at the bracket's ends and their pieces' end values
+        dE_lo, Ef_lo = run(lo[pid], dt)
+        dE_hi, Ef_hi = run(hi[pid], dt)
+        return (dE_lo, Ef_lo, dE_hi, Ef_hi, _piece_ends(dE_lo, pid, bnd, E_start, sat, E_max),
+                _piece_ends(dE_hi, pid, bnd, E_start, sat, E_max))
+
+    # The loop leaves every end it moved on its side: too much left at lo (up), not at hi.
+    # Evaluated again here, in another part of the program, an end within an ulp of a guard can
+    # come out on the other side: at a guard's exact ties XLA may round H = P_f - lam P_bi with
+    # or without a fused multiply-add, and where the route's steps share one guard (a cruise)
+    # they all flip at once (Long Haul in float32, vmapped over 2 host devices: the piece then
+    # missed its end value by 1.9 MJ, its violations were not counted, and Level 2 returned one
+    # piece without the battery's limits). Such an end moves outward, by a step that grows from
+    # 16 ulps, until it holds; elsewhere nothing changes (`bracket_held`).
+    lo, hi, (dE_lo, Ef_lo, dE_hi, Ef_hi, end_p, end_m) = bracket_held(
+        ends, lambda e: jnp.where(sat, e >= tgt - tol_v, e > tgt), lo, hi, lam_lo, lam_hi,
+        lambda out: out[4:])
     den = end_p - end_m
     r_plus = jnp.clip(jnp.where(den > 0, (tgt - end_m) / jnp.where(den > 0, den, 1.0), 0.5), 0, 1)
 
@@ -1076,8 +1124,14 @@ def _horizon_core(vp, P_d, v, w, mask, dt, E_b0, E_min, E_max, lam_min, lam_max,
 
     lo, hi = jax.lax.fori_loop(
         0, n_iter, body, (jnp.asarray(lam_min, dtype), jnp.asarray(lam_max, dtype)))
-    d_plus, d_minus = run(lo), run(hi)  # after the loop, as in `_solve_pieces`
-    E_plus, E_minus = path(d_plus), path(d_minus)
+
+    def ends(lo, hi):  # after the loop, as in `_solve_pieces`
+        E_plus, E_minus = path(run(lo)), path(run(hi))
+        return E_plus, E_minus, dists(E_plus), dists(E_minus)
+
+    # the ends on the sides the loop left them (`bracket_held`, as in `_solve_pieces`)
+    lo, hi, (E_plus, E_minus, _, _) = bracket_held(ends, lambda d: d[0] > d[1], lo, hi, lam_min,
+                                                   lam_max, lambda out: out[2:])
 
     # at a guard the two sides differ: mix them (I2a) to balance the two distances
     def rbody(_, c):
