@@ -10,7 +10,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxems.shard import backends_started, chunk_plan, map_batch, shortcut, use_host_devices
+from jaxems.shard import (
+    backends_started,
+    chunk_plan,
+    map_batch,
+    one_at_a_time,
+    shortcut,
+    use_host_devices,
+)
 
 TRACES = [0]
 
@@ -203,3 +210,78 @@ def test_shortcut_runs_the_full_form_only_where_needed():
     for bs in (None, 2):
         np.testing.assert_array_equal(jax.lax.map(lambda xi: f(xi, 1.0), x, batch_size=bs),
                                       want(np.asarray(x)))
+
+
+def test_one_at_a_time_is_a_loop_under_vmap():
+    """A function made `one_at_a_time` gives under `jax.vmap` (batched and unbatched
+    arguments, pytrees, nested in jit and lax.map's chunks) what it gives item by item; on a CPU
+    its items run one after the other: a while loop whose trip count depends on the item runs
+    each item's own count, not the batch's largest (counted by a callback)."""
+    trips = []
+
+    def f(x, p):  # x: (), p: {"a": (2,), "b": ()}; a while loop of x trips
+        def body(c):
+            jax.debug.callback(lambda: trips.append(1))
+            return c[0] + 1.0, c[1] + p["a"] * c[0]
+
+        n, acc = jax.lax.while_loop(lambda c: c[0] < x, body, (0.0, jnp.zeros(2)))
+        return {"n": n, "acc": acc + p["b"]}
+
+    g = one_at_a_time(f)
+    x = jnp.array([3.0, 0.0, 5.0, 1.0])
+    p = {"a": jnp.array([1.0, 2.0]), "b": jnp.array([0.5, -1.0, 2.0, 0.0])}
+    want = [f(xi, {"a": p["a"], "b": bi}) for xi, bi in zip(x, p["b"], strict=True)]
+    for batched in (jax.jit(jax.vmap(g, in_axes=(0, {"a": None, "b": 0}))),
+                    lambda x, p: jax.lax.map(lambda xb: g(xb[0], {"a": p["a"], "b": xb[1]}),
+                                             (x, p["b"]), batch_size=2)):
+        trips.clear()
+        out = batched(x, p)
+        for i, w in enumerate(want):
+            for k in w:
+                np.testing.assert_array_equal(np.asarray(out[k][i]), np.asarray(w[k]))
+        if jax.default_backend() == "cpu":
+            assert len(trips) == int(sum(x))  # 9 trips, where a vmapped loop runs 4 x 5
+    assert float(jax.jit(g)(2.0, {"a": p["a"], "b": 1.0})["n"]) == 2.0  # unbatched: f itself
+
+
+LEVEL2_CHILD = textwrap.dedent("""
+    import numpy as np
+    from jaxems.shard import map_batch, use_host_devices
+    use_host_devices(2)
+    import jax
+    import jax.numpy as jnp
+    from jaxems import strategies as S
+    from jaxems.io import load_route
+    from jaxems.levels import battery as l2
+    from jaxems.params import load_vehicle, stack_vehicles
+
+    route = load_route("LongHaul")
+    base = load_vehicle()
+    vps = stack_vehicles([base.replace(mass=15e3, E_b_max=e * 1e6) for e in (1, 2, 3, 4)])
+    vps = jax.tree.map(lambda a: np.asarray(a, np.float32), vps)
+    n = S.steps_for_batch(route, vps)
+
+    def fn(route, vp):
+        p = S.level3(route, vp, 1.0, n)
+        c2 = l2.costate_kernel(vp, p.P_d, p.v, jnp.full_like(p.v, vp.w_pred), p.mask, 1.0,
+                               max_pieces=32)
+        return c2.n_pieces, c2.lam0
+
+    sharded = map_batch(fn, vps, shared=route, chunk=4)
+    alone = [jax.jit(fn)(route, jax.tree.map(lambda a: a[i], vps)) for i in range(4)]
+    np.testing.assert_array_equal(np.asarray(sharded[0]), [int(a[0]) for a in alone])
+    np.testing.assert_allclose(np.asarray(sharded[1]), [float(a[1]) for a in alone], rtol=1e-5)
+    print("OK", np.asarray(sharded[0]).tolist())
+""")
+
+
+def test_level2_in_a_chunk_over_two_host_devices_subprocess():
+    """Level 2 on Long Haul in a sweep's vmapped chunk over two host devices (float32) equals
+    Level 2 of each configuration alone: its pieces (the battery's limits, which a bracket
+    evaluated on the other side of a guard once made it drop: one piece for every battery
+    size, `battery.bracket_held`) and its costate."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_cpu_enable_fast_math=false")
+    r = subprocess.run([sys.executable, "-c", LEVEL2_CHILD], env=env, capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip().splitlines()[-1].startswith("OK")
