@@ -383,9 +383,9 @@ def main(argv=None) -> int:
                     help="host devices for the sharded path, or a comma list to compare")
     ap.add_argument("--chunk", type=int, default=None,
                     help="most configurations vmapped at once per device (default: each "
-                         "strategy's, strategies.default_chunk: on a CPU 1, unbatched, for "
-                         "multilevel, multilevel-mpc, multilevel-eco and dp-bound, 16 for "
-                         "conventional and baseline; on a GPU what its memory holds)")
+                         "strategy's, strategies.default_chunk: on a CPU 4 for multilevel, "
+                         "1, unbatched, for multilevel-mpc, multilevel-eco and dp-bound, 16 "
+                         "for conventional and baseline; on a GPU what its memory holds)")
     g = ap.add_mutually_exclusive_group()
     g.add_argument("--plain", action="store_true", help="time simulate_batch only")
     g.add_argument("--compare-plain", action="store_true",
