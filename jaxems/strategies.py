@@ -1063,7 +1063,7 @@ class BoundTables(NamedTuple):
     dep: `BoundCands` (T, J, n_dep) of the first n_dep states, whose battery power depends on
     the costate (M_c's), at the J candidate costates lams: (J,); fix:
     `BoundCands` (T, S - n_dep) of the other states, whose split is the same at every costate
-    (one candidate, taken at lams[0]); C: (T, S, S) Level 1's switching costs, priced at
+    (one candidate, `powersplit.fixed_split`); C: (T, S, S) Level 1's switching costs, priced at
     lam_sw: (T,) Level 2's costate; lam_end: () the worth of E_b(tf) beyond the goal (Level
     2's costate on its last piece). Kept apart, the fixed states' split is computed once
     instead of at every candidate costate (`full` joins them)."""
@@ -1106,8 +1106,8 @@ class BoundPath(NamedTuple):
 
 def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTables:
     """`BoundTables`: M_c's split in every gear at opts.dp_lams costates
-    (`dp_candidate_lams`), the other modes' at the first of them, and the switching costs at
-    Level 2's costate."""
+    (`dp_candidate_lams`), the other modes' once (`powersplit.fixed_split`), and the switching
+    costs at Level 2's costate."""
     w0 = jnp.full_like(pred.v, vp.w_pred)
     c2 = l2.costate_kernel(vp, pred.P_d, pred.v, w0, pred.mask, dt)  # prices switching
     lam_sw = c2.lam
@@ -1124,7 +1124,9 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
     # (T, J, n_g) M_c's candidates; (T, S - n_g) the others' one
     c_dep = jax.vmap(lambda P_d, v: jax.vmap(lambda lam: split(P_d, v, lam, (ps.MC,)))(lams))(
         pred.P_d, pred.v)
-    c_fix = jax.vmap(lambda P_d, v: split(P_d, v, lams[0], ps.FIXED_MODES))(pred.P_d, pred.v)
+    fx = ps.fixed_split(vp, pred.P_d, pred.v)
+    T = pred.v.shape[0]
+    c_fix = (fx.P_b.reshape(T, -1), fx.P_f.reshape(T, -1), fx.feasible.reshape(T, -1))
     any_feas = jnp.any(c_dep[2], axis=(1, 2)) | jnp.any(c_fix[2], axis=1)
 
     def cands(Pb, Pf, feas):  # infeasible -> BIG cost; a step beyond capability: free

@@ -285,10 +285,11 @@ def hamiltonian_table(vp: VehicleParams, P_d, v, lam) -> Split:
 
 class FixedSplit(NamedTuple):
     """The split of `FIXED_MODES` at one step or over a time grid, which does not depend on
-    lambda_b <= 0: P_f (W) fuel power, P_bi (W) the battery's internal power
-    (`powertrain.battery_internal` of P_b), feasible; each (..., 3, G)."""
+    lambda_b <= 0: P_f (W) fuel power, P_b (W) battery power, P_bi (W) the battery's internal
+    power (`powertrain.battery_internal` of P_b), feasible; each (..., 3, G)."""
 
     P_f: jax.Array
+    P_b: jax.Array
     P_bi: jax.Array
     feasible: jax.Array
 
@@ -297,7 +298,8 @@ def fixed_split(vp: VehicleParams, P_d, v) -> FixedSplit:
     """`FixedSplit` over a time grid (P_d, v: (T,)): once for every lambda_b <= 0."""
     def one(P_d, v):
         sp = mode_gear_split(vp, P_d, v, -1.0, FIXED_MODES)
-        return FixedSplit(P_f=sp.P_f, P_bi=pt.battery_internal(vp, sp.P_b), feasible=sp.feasible)
+        return FixedSplit(P_f=sp.P_f, P_b=sp.P_b, P_bi=pt.battery_internal(vp, sp.P_b),
+                          feasible=sp.feasible)
 
     return jax.vmap(one)(P_d, v)
 
