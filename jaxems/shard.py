@@ -217,21 +217,23 @@ def shortcut(check: Callable, full: Callable) -> Callable:
     return f
 
 
-def one_at_a_time(f: Callable) -> Callable:
+def one_at_a_time(f: Callable, sequential: bool | None = None) -> Callable:
     """f (a function of arrays or pytrees of arrays) whose `jax.vmap` on a CPU runs the batch's
     items one after the other, each unbatched (`lax.map`), instead of vectorised; on other
     backends (a GPU) it is vectorised as usual. For a stage of a batched kernel whose loops and
     conds cost more vectorised than its arithmetic gains on a CPU (a vmapped `lax.cond` runs
     both branches, a vmapped while loop runs until its last item ends) while the rest of the
     kernel gains from the batch (the plant's steps, dispatch-bound alone). The values are f's
-    on each item. Built on `jax.custom_batching.custom_vmap`: no reverse-mode autodiff."""
+    on each item. sequential: True / False forces one form (None: one at a time where JAX's
+    default backend is the CPU, decided when the batch is traced). Built on
+    `jax.custom_batching.custom_vmap`: no reverse-mode autodiff."""
     g = jax.custom_batching.custom_vmap(f)
 
     @g.def_vmap
     def rule(axis_size, in_batched, *args):
-        if jax.default_backend() != "cpu":
+        if not (jax.default_backend() == "cpu" if sequential is None else sequential):
             axes = tuple(jax.tree.map(lambda b: 0 if b else None, list(in_batched)))
-            out = jax.vmap(g, in_axes=axes, axis_size=axis_size)(*args)
+            out = jax.vmap(f, in_axes=axes, axis_size=axis_size)(*args)
             return out, jax.tree.map(lambda _: True, out)
         leaves, tree = jax.tree.flatten(list(args))
         flags = jax.tree.leaves(list(in_batched))

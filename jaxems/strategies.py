@@ -1117,12 +1117,12 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
     # (`powersplit.FIXED_MODES`). M_c's states come first (state = mode x n_gears + gear).
     assert ps.MC == 0 and ps.FIXED_MODES == (1, 2, 3), "M_c's states come first"
 
-    def split(P_d, v, lam, modes):  # (P_b, P_f, feasible), each (n_modes * n_gears,)
-        sp = ps.mode_gear_split(vp, P_d, v, lam, modes)
-        return sp.P_b.reshape(-1), sp.P_f.reshape(-1), sp.feasible.reshape(-1)
+    def split_c(P_d, v, lam):  # M_c's (P_b, P_f, feasible), each (n_gears,)
+        sp = ps.mode_gear_split(vp, P_d, v, lam, (ps.MC,))
+        return sp.P_b[0], sp.P_f[0], sp.feasible[0]
 
     # (T, J, n_g) M_c's candidates; (T, S - n_g) the others' one
-    c_dep = jax.vmap(lambda P_d, v: jax.vmap(lambda lam: split(P_d, v, lam, (ps.MC,)))(lams))(
+    c_dep = jax.vmap(lambda P_d, v: jax.vmap(lambda lam: split_c(P_d, v, lam))(lams))(
         pred.P_d, pred.v)
     fx = ps.fixed_split(vp, pred.P_d, pred.v)
     T = pred.v.shape[0]

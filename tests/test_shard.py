@@ -215,8 +215,9 @@ def test_shortcut_runs_the_full_form_only_where_needed():
 def test_one_at_a_time_is_a_loop_under_vmap():
     """A function made `one_at_a_time` gives under `jax.vmap` (batched and unbatched
     arguments, pytrees, nested in jit and lax.map's chunks) what it gives item by item; on a CPU
-    its items run one after the other: a while loop whose trip count depends on the item runs
-    each item's own count, not the batch's largest (counted by a callback)."""
+    (or with sequential=True) its items run one after the other: a while loop whose trip count
+    depends on the item runs each item's own count, not the batch's largest (counted by a
+    callback); with sequential=False it is vectorised."""
     trips = []
 
     def f(x, p):  # x: (), p: {"a": (2,), "b": ()}; a while loop of x trips
@@ -227,21 +228,25 @@ def test_one_at_a_time_is_a_loop_under_vmap():
         n, acc = jax.lax.while_loop(lambda c: c[0] < x, body, (0.0, jnp.zeros(2)))
         return {"n": n, "acc": acc + p["b"]}
 
-    g = one_at_a_time(f)
     x = jnp.array([3.0, 0.0, 5.0, 1.0])
     p = {"a": jnp.array([1.0, 2.0]), "b": jnp.array([0.5, -1.0, 2.0, 0.0])}
     want = [f(xi, {"a": p["a"], "b": bi}) for xi, bi in zip(x, p["b"], strict=True)]
-    for batched in (jax.jit(jax.vmap(g, in_axes=(0, {"a": None, "b": 0}))),
-                    lambda x, p: jax.lax.map(lambda xb: g(xb[0], {"a": p["a"], "b": xb[1]}),
-                                             (x, p["b"]), batch_size=2)):
-        trips.clear()
-        out = batched(x, p)
-        for i, w in enumerate(want):
-            for k in w:
-                np.testing.assert_array_equal(np.asarray(out[k][i]), np.asarray(w[k]))
-        if jax.default_backend() == "cpu":
-            assert len(trips) == int(sum(x))  # 9 trips, where a vmapped loop runs 4 x 5
-    assert float(jax.jit(g)(2.0, {"a": p["a"], "b": 1.0})["n"]) == 2.0  # unbatched: f itself
+    # one at a time: 9 trips in all (each item's own); vectorised: the batch's 5 (once each)
+    for g, n_trips in ((one_at_a_time(f), 9 if jax.default_backend() == "cpu" else 5),
+                       (one_at_a_time(f, sequential=True), 9),
+                       (one_at_a_time(f, sequential=False), 5)):
+        for batched in (jax.jit(jax.vmap(g, in_axes=(0, {"a": None, "b": 0}))),
+                        lambda x, p, g=g: jax.lax.map(
+                            lambda xb: g(xb[0], {"a": p["a"], "b": xb[1]}), (x, p["b"]),
+                            batch_size=4)):
+            trips.clear()
+            out = batched(x, p)
+            for i, w in enumerate(want):
+                for k in w:
+                    np.testing.assert_array_equal(np.asarray(out[k][i]), np.asarray(w[k]))
+            assert len(trips) == n_trips
+        # unbatched: f itself
+        assert float(jax.jit(g)(2.0, {"a": p["a"], "b": 1.0})["n"]) == 2.0
 
 
 LEVEL2_CHILD = textwrap.dedent("""
