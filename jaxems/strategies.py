@@ -1135,11 +1135,11 @@ def bound_tables(vp, pred: l3.Prediction, dt, opts: Options, params) -> BoundTab
         return BoundCands(fuel=jnp.where(some, jnp.where(feas, Pf * dt, BIG), 0.0),
                           dEb=jnp.where(some, dEb, 0.0), P_b=Pb)
 
-    def costs(P_d, v, g, lam):  # the switching costs of Level 1 (with what braking loses)
-        H = ps.mode_gear_split(vp, P_d, v, lam).H
+    def costs(P_d, v, g, lam, H):  # the switching costs of Level 1 (with what braking loses)
         return sw.switch_cost_matrix(vp, v, g, lam, params, l1.braking_loss(vp, H, P_d, dt))
 
-    Cs = jax.vmap(costs)(pred.P_d, pred.v, pred.grade, lam_sw)  # (T, S, S)
+    H_sw = ps.hamiltonian_H(vp, pred.P_d, pred.v, lam_sw, fx)  # (T, 4, G) at Level 2's costate
+    Cs = jax.vmap(costs)(pred.P_d, pred.v, pred.grade, lam_sw, H_sw)  # (T, S, S)
     return BoundTables(dep=cands(*c_dep), fix=cands(*c_fix), C=Cs, lams=lams, lam_end=lam_end,
                        lam_sw=lam_sw)
 
