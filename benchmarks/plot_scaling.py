@@ -30,7 +30,7 @@ def _panel(ax, runs: dict, key: str, xlabel: str, xval, title: str):
             continue
         x = np.array([xval(p) for p in pts], float)
         t = np.array([p["median_s"] for p in pts], float)
-        (line,) = ax.loglog(x, t, "o-", label=name)
+        (line,) = ax.loglog(x, t, "o-", label=f"{name} (chunk {pts[0]['chunk']})")
         ax.loglog(x, t[0] * x / x[0], ":", color=line.get_color(), alpha=0.7,
                   label=f"{name}: linear from first point")
         for xi, ti, p in zip(x, t, pts, strict=True):  # peak memory of each run
@@ -41,7 +41,9 @@ def _panel(ax, runs: dict, key: str, xlabel: str, xval, title: str):
     ax.xaxis.set_major_formatter(ScalarFormatter())
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.yaxis.set_major_formatter(ScalarFormatter())
-    ax.yaxis.set_minor_formatter(ScalarFormatter())
+    # minor labels only where the panel spans less than a decade (else they overlap)
+    lo, hi = ax.get_ylim()
+    ax.yaxis.set_minor_formatter(ScalarFormatter() if hi / lo < 10 else NullFormatter())
     ax.set_xlabel(xlabel)
     ax.set_ylabel("wall time per call (s, median; labels: peak RSS)")
     ax.set_title(title)
@@ -61,7 +63,8 @@ def plot(data: dict, out: Path) -> Path:
            f"{data['route']}; batch size")
     p0 = (first["batch"] or first["length"])[0]
     fig.suptitle(f"jaxems fleet scaling: {data['precision']}, {p0['devices']} host device(s), "
-                 f"chunk {p0['chunk']}, {data['machine']['cpu_count']} CPU cores (shared)",
+                 f"{data['machine']['cpu_count']} CPU cores (shared), commit "
+                 f"{data.get('code', {}).get('commit', '?')}",
                  fontsize=10)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
