@@ -112,7 +112,8 @@ class Command(NamedTuple):
     applied directly, clipped to what the active state and the battery allow. catch_up: with a
     finite P_b, whether the battery may also cover the power of recovering the reference speed
     after a switch (beyond the reference's own acceleration); if not, only the engine's headroom
-    and the commanded motor power recover it, so the battery follows the plan's.
+    and the commanded motor power recover it, so the battery follows the plan's (in a state
+    with the engine disconnected, M_m, the battery recovers it regardless).
     """
 
     mode: Any
@@ -502,11 +503,14 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     cap_hi = traction * (r.e_hi + r.m_lim)
     P_dem = jnp.minimum(P_req, cap_hi)  # traction-limited demand (brakes take any excess)
     # a plan's battery power: recovering the reference after a switch on the engine's headroom
-    # (and the commanded motor power) unless the controller lets the battery cover it
+    # (and the commanded motor power) unless the controller lets the battery cover it; with
+    # the engine disconnected (M_m) the battery is all there is, and it recovers the reference
+    # (else the truck would hold the speed it has, behind the reference, until the plan's
+    # next engine state)
     planned = jnp.isfinite(cmd.P_b)
     pm_cmd = ps.pm_of_pb(vp, r, jnp.where(planned, cmd.P_b, 0.0))
     cap_plan = traction * (jnp.where(r.ce, r.e_hi, 0.0) + jnp.clip(pm_cmd, 0.0, r.m_lim))
-    limit = planned & ~jnp.asarray(cmd.catch_up, bool)
+    limit = planned & ~jnp.asarray(cmd.catch_up, bool) & r.ce
     P_dem = jnp.where(limit, jnp.minimum(P_dem, jnp.maximum(P_need, cap_plan)), P_dem)
     opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
     P_b = jnp.where(planned, cmd.P_b, opt.P_b)

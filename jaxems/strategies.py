@@ -214,11 +214,13 @@ def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
     """Follow a plan by position: request the state planned for the next step (I(k) = M(k+1))
     and the planned battery power, corrected by the battery energy's deviation from the plan
     (the plant is not the plan's model: switches open the driveline, speeds differ); the plant
-    clips it to what the active state and the battery allow. The battery helps recover the
-    reference speed after a switch only while its energy is at or above the plan's (else the
-    engine's headroom does, more slowly): recovering on the battery below the plan drained it
-    by what no plan sees (dp-bound on Regional Delivery ended 0.41 MJ low; with the rule
-    0.001 MJ, for a trip 0.6 % longer)."""
+    clips it to what the active state and the battery allow. Where the engine runs, the battery
+    helps recover the reference speed after a switch only while its energy is at or above the
+    plan's (else the engine's headroom does, more slowly): recovering on the battery below the
+    plan drained it by what no plan sees (dp-bound on Regional Delivery ended 0.41 MJ low;
+    with the rule 0.001 MJ, for a trip 0.6 % longer). In M_m the battery recovers it always
+    (the plant's rule): held at the speed it had, the truck fell behind the reference in Urban
+    Delivery's crawls for most of its 1.4 % longer trip."""
     T = plan.mode.shape[0]
     j1 = jnp.minimum(obs.j + 1, T - 1)
     P_b = plan.P_b[obs.j] + plan.k_E * (obs.E_b - plan.E_ref[obs.j])

@@ -117,9 +117,11 @@ def test_launch_state_engaged_while_standing():
 
 
 def engine_first(catch_up, cstate, vp, obs):
-    """The greedy state with a planned battery power of 0 (the engine drives where it can)."""
+    """The greedy gear with the engine connected (M_c where greedy takes M_m) and a planned
+    battery power of 0 (the engine drives where it can)."""
     _, cmd = greedy(-2.2, cstate, vp, obs)
-    return cstate, cmd._replace(P_b=jnp.zeros(()), catch_up=catch_up)
+    mode = jnp.where(cmd.mode == ps.MM, ps.MC, cmd.mode)
+    return cstate, cmd._replace(mode=mode, P_b=jnp.zeros(()), catch_up=catch_up)
 
 
 @xla.jit
@@ -140,6 +142,39 @@ def test_catch_up_on_the_battery_only_when_allowed():
 
     assert drawn(without) < drawn(with_b)
     assert float(without.final.tot.trip_time) >= float(with_b.final.tot.trip_time)
+    assert rel_balance(without, VP) < 1e-3
+
+
+def motor_planned(catch_up, cstate, vp, obs):
+    """The greedy gear on the motor alone (M_m wherever it drives) with a planned battery
+    power of 0: only the plant's rules make the motor recover the reference."""
+    _, cmd = greedy(-2.2, cstate, vp, obs)
+    mode = jnp.where(cmd.mode == ps.MO, ps.MO, ps.MM)
+    return cstate, cmd._replace(mode=mode, P_b=jnp.zeros(()), catch_up=catch_up)
+
+
+@xla.jit
+def run_motor_planned(catch_up):
+    track = P.make_track(ROUTE, PRED)
+    return P.run_plant(VP, track, motor_planned, catch_up, jnp.zeros(()), ps.MO, 0, N_PLANT)
+
+
+def test_motor_alone_recovers_the_reference_whatever_the_plan():
+    # with the engine disconnected the battery is all there is: the plant recovers the
+    # reference speed after a switch whether or not the controller lets the battery catch up
+    # (held at the speed it had, the truck fell behind for good in M_m's crawls); where the
+    # engine runs, catch_up decides (test above)
+    with_b, without = run_motor_planned(True), run_motor_planned(False)
+    mode = np.asarray(without.trace.mode)
+    engine = np.flatnonzero((mode == ps.ME) | (mode == ps.MC))
+    n = int(engine[0]) if engine.size else N_PLANT
+    v_w, v_wo = np.asarray(with_b.trace.v)[:n], np.asarray(without.trace.v)[:n]
+    # the prefix in M_m holds switches that lose speed (gear changes while driving)
+    gear = np.asarray(without.trace.gear)[:n]
+    assert np.sum((np.diff(gear) != 0) & (mode[1:n] == ps.MM)) >= 2
+    np.testing.assert_array_equal(v_wo, v_w)
+    np.testing.assert_array_equal(np.asarray(without.trace.P_b)[:n],
+                                  np.asarray(with_b.trace.P_b)[:n])
     assert rel_balance(without, VP) < 1e-3
 
 
