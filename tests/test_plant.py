@@ -116,18 +116,20 @@ def test_launch_state_engaged_while_standing():
     assert np.all(mode[at[0]:launch - 1] == ps.MO)
 
 
-def engine_first(catch_up, cstate, vp, obs):
-    """The greedy gear with the engine connected (M_c where greedy takes M_m) and a planned
-    battery power of 0 (the engine drives where it can)."""
+def planned_zero(drive_mode, catch_up, cstate, vp, obs):
+    """The greedy gear in drive_mode wherever greedy drives, with a planned battery power of
+    0: M_c (the engine drives where it can) or M_m (only the plant's rules make the motor
+    recover the reference)."""
     _, cmd = greedy(-2.2, cstate, vp, obs)
-    mode = jnp.where(cmd.mode == ps.MM, ps.MC, cmd.mode)
+    mode = jnp.where(cmd.mode == ps.MO, ps.MO, drive_mode)
     return cstate, cmd._replace(mode=mode, P_b=jnp.zeros(()), catch_up=catch_up)
 
 
-@xla.jit
-def run_planned(catch_up):
+@xla.jit(static_argnames="drive_mode")
+def run_planned(catch_up, drive_mode=ps.MC):
     track = P.make_track(ROUTE, PRED)
-    return P.run_plant(VP, track, engine_first, catch_up, jnp.zeros(()), ps.MO, 0, N_PLANT)
+    return P.run_plant(VP, track, functools.partial(planned_zero, drive_mode), catch_up,
+                       jnp.zeros(()), ps.MO, 0, N_PLANT)
 
 
 def test_catch_up_on_the_battery_only_when_allowed():
@@ -145,26 +147,12 @@ def test_catch_up_on_the_battery_only_when_allowed():
     assert rel_balance(without, VP) < 1e-3
 
 
-def motor_planned(catch_up, cstate, vp, obs):
-    """The greedy gear on the motor alone (M_m wherever it drives) with a planned battery
-    power of 0: only the plant's rules make the motor recover the reference."""
-    _, cmd = greedy(-2.2, cstate, vp, obs)
-    mode = jnp.where(cmd.mode == ps.MO, ps.MO, ps.MM)
-    return cstate, cmd._replace(mode=mode, P_b=jnp.zeros(()), catch_up=catch_up)
-
-
-@xla.jit
-def run_motor_planned(catch_up):
-    track = P.make_track(ROUTE, PRED)
-    return P.run_plant(VP, track, motor_planned, catch_up, jnp.zeros(()), ps.MO, 0, N_PLANT)
-
-
 def test_motor_alone_recovers_the_reference_whatever_the_plan():
     # with the engine disconnected the battery is all there is: the plant recovers the
     # reference speed after a switch whether or not the controller lets the battery catch up
     # (held at the speed it had, the truck fell behind for good in M_m's crawls); where the
     # engine runs, catch_up decides (test above)
-    with_b, without = run_motor_planned(True), run_motor_planned(False)
+    with_b, without = run_planned(True, ps.MM), run_planned(False, ps.MM)
     mode = np.asarray(without.trace.mode)
     engine = np.flatnonzero((mode == ps.ME) | (mode == ps.MC))
     n = int(engine[0]) if engine.size else N_PLANT
