@@ -1506,7 +1506,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         if planned and not bool(c_up[k]) and c.ce:  # recover a switch's lost speed on the
             # engine only (with the engine disconnected the battery recovers it)
             pm_cmd = _pm_of_pb_state(f, c, float(c_pb[k]))
-            cap_plan = traction * ((c.e_hi if c.ce else 0.0) + min(max(pm_cmd, 0.0), c.m_lim))
+            cap_plan = traction * (c.e_hi + min(max(pm_cmd, 0.0), c.m_lim))
             P_dem = min(P_dem, max(P_need, cap_plan))
         if planned:
             P_b = float(c_pb[k])
