@@ -509,8 +509,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # next engine state)
     planned = jnp.isfinite(cmd.P_b)
     pm_cmd = ps.pm_of_pb(vp, r, jnp.where(planned, cmd.P_b, 0.0))
-    cap_plan = traction * (jnp.where(r.ce, r.e_hi, 0.0) + jnp.clip(pm_cmd, 0.0, r.m_lim))
     limit = planned & ~jnp.asarray(cmd.catch_up, bool) & r.ce
+    cap_plan = traction * (r.e_hi + jnp.clip(pm_cmd, 0.0, r.m_lim))  # used only where limit
     P_dem = jnp.where(limit, jnp.minimum(P_dem, jnp.maximum(P_need, cap_plan)), P_dem)
     opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
     P_b = jnp.where(planned, cmd.P_b, opt.P_b)
