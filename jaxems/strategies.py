@@ -124,7 +124,7 @@ class Options(NamedTuple):
     lam0: float = -2.2
     kp: float = 5.0
     soc_ref: float | None = None
-    ke_share: float = 0.15
+    ke_share: float = 0.05
     dwell: int = 3
     dp_n_E: int = 101
     dp_lams: int = 48
