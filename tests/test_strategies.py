@@ -525,6 +525,37 @@ def test_final_braking_cap_sustains_the_baselines_charge():
     assert capped["trip_time_s"] == free["trip_time_s"]
 
 
+def cruise_route():
+    """A standing start to 85 km/h, a 3 % climb over 600 m from 1 km, braking to a stop at 3
+    km; the short track's shapes (nodes, and steps at 40 t with 4 MJ), as `braking_route`."""
+    from jaxems.route import Row, route_from_rows
+
+    rows = [(0, 0, 0, 5), (10, 85, 0, 0), (1000, 85, 3, 0), (1600, 85, 0, 0), (3000, 0, 0, 5)]
+    route = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], ds=10.0,
+                            bucket=512)
+    vp = load_vehicle().replace(mass=40000.0, E_b_max=4e6)
+    short = load_route("short_track")
+    assert route.grade.shape == short.grade.shape
+    assert S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP)
+    return route, vp
+
+
+def test_baselines_speed_credit_leaves_a_heavy_truck_its_charge():
+    """`cruise_route` at 40 t with 4 MJ. The A-ECMS counts a share of the kinetic energy as in
+    the battery already: with the default 5 % (of 11.1 MJ at 85 km/h, 0.56 MJ) its battery
+    stays above 0.84 MJ and ends within 1 % of its start; with 15 % (1.67 MJ, the default
+    before 2026-11-25) it cruised near empty and ended 10 % low, as heavy trucks with small
+    batteries did across the demo grid."""
+    route, vp = cruise_route()
+    size = float(vp.E_b_max)
+    now = S.simulate(route, vp, "baseline")
+    assert abs(now["delta_Eb_J"]) < 0.01 * size
+    assert float(np.min(now.trace.E_b)) > 0.15 * size
+    before = S.simulate(route, vp, "baseline", ke_share=0.15)
+    assert before["delta_Eb_J"] < -0.05 * size
+    assert float(np.min(before.trace.E_b)) < 0.05 * size
+
+
 def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
     """The short track ends cruising (its last step pulls): no cap, no reserve. `braking_route`
     ends braking to a stop: with the cap the MPC's end target is the start plus
