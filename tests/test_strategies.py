@@ -543,7 +543,7 @@ def cruise_route():
 def test_baselines_speed_credit_leaves_a_heavy_truck_its_charge():
     """`cruise_route` at 40 t with 4 MJ. The A-ECMS counts a share of the kinetic energy as in
     the battery already: with the default 5 % (of 11.1 MJ at 85 km/h, 0.56 MJ) its battery
-    stays above 0.84 MJ and ends within 1 % of its start; with 15 % (1.67 MJ, the default
+    stays at 0.84 MJ or more (the test allows 0.6) and ends within 1 % of its start; with 15 % (1.67 MJ, the default
     before 2026-11-25) it cruised near empty and ended 10 % low, as heavy trucks with small
     batteries did across the demo grid."""
     route, vp = cruise_route()
