@@ -486,19 +486,24 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
         S.simulate_batch("short_track", VP, "baseline")
 
 
-def braking_route():
-    """1.5 km at 60 km/h, a 3 % climb over 600 m, then flat, braking to a stop at the end; the
-    short track's shapes (nodes, and steps at 20 t), so that its runs reuse the compilations
-    of the short track's."""
+def short_shaped_route(rows, vp):
+    """A route from (s m, v km/h, grade %, stop s) rows with the short track's shapes (nodes,
+    and steps for vp), so that its runs reuse the compilations of the short track's."""
     from jaxems.route import Row, route_from_rows
 
-    rows = [(0, 60, 0, 0), (300, 60, 3, 0), (900, 60, 0, 0), (1500, 0, 0, 5)]
     route = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], ds=10.0,
                             bucket=512)
     short = load_route("short_track")
     assert route.grade.shape == short.grade.shape
-    assert S.steps_for_batch(route, VP.replace(mass=20000.0)) == S.steps_for_batch(short, VP)
+    assert S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP)
     return route
+
+
+def braking_route():
+    """1.5 km at 60 km/h, a 3 % climb over 600 m, then flat, braking to a stop at the end
+    (`short_shaped_route` at 20 t)."""
+    return short_shaped_route([(0, 60, 0, 0), (300, 60, 3, 0), (900, 60, 0, 0),
+                               (1500, 0, 0, 5)], VP.replace(mass=20000.0))
 
 
 def test_final_braking_cap_sustains_the_baselines_charge():
@@ -527,25 +532,18 @@ def test_final_braking_cap_sustains_the_baselines_charge():
 
 def cruise_route():
     """A standing start to 85 km/h, a 3 % climb over 600 m from 1 km, braking to a stop at 3
-    km; the short track's shapes (nodes, and steps at 40 t with 4 MJ), as `braking_route`."""
-    from jaxems.route import Row, route_from_rows
-
-    rows = [(0, 0, 0, 5), (10, 85, 0, 0), (1000, 85, 3, 0), (1600, 85, 0, 0), (3000, 0, 0, 5)]
-    route = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], ds=10.0,
-                            bucket=512)
+    km (`short_shaped_route` at 40 t with 4 MJ): (route, vehicle)."""
     vp = load_vehicle().replace(mass=40000.0, E_b_max=4e6)
-    short = load_route("short_track")
-    assert route.grade.shape == short.grade.shape
-    assert S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP)
-    return route, vp
+    return short_shaped_route([(0, 0, 0, 5), (10, 85, 0, 0), (1000, 85, 3, 0),
+                               (1600, 85, 0, 0), (3000, 0, 0, 5)], vp), vp
 
 
 def test_baselines_speed_credit_leaves_a_heavy_truck_its_charge():
     """`cruise_route` at 40 t with 4 MJ. The A-ECMS counts a share of the kinetic energy as in
     the battery already: with the default 5 % (of 11.1 MJ at 85 km/h, 0.56 MJ) its battery
-    stays at 0.84 MJ or more (the test allows 0.6) and ends within 1 % of its start; with 15 % (1.67 MJ, the default
-    before 2026-11-25) it cruised near empty and ended 10 % low, as heavy trucks with small
-    batteries did across the demo grid."""
+    stays at 0.84 MJ or more (the test allows 0.6) and ends within 1 % of its start; with 15 %
+    (1.67 MJ, the default before 2026-11-25) it cruised near empty and ended 10 % low, as
+    heavy trucks with small batteries did across the demo grid."""
     route, vp = cruise_route()
     size = float(vp.E_b_max)
     now = S.simulate(route, vp, "baseline")
