@@ -204,7 +204,7 @@ def traction_loss(vp: VehicleParams, F0, v, tau, F_max, params: SwitchCostParams
     v1 = jnp.maximum(v0 + a0 * tau, 0.0)
     t_open = jnp.where(a0 < 0, jnp.minimum(tau, v0 / jnp.maximum(-a0, 1e-30)), tau)
     s1 = v0 * t_open + 0.5 * a0 * t_open * t_open
-    saturated = F0 >= F_max
+    saturated = jnp.asarray(F0 >= F_max)  # an array also for Python floats (~ on a bool)
     decel = (F0 > 0) & ~saturated
     a2 = jnp.where(decel, (F_max - F0) / m, 1.0)
     t_r = jnp.where(decel, (v0 - v1) / a2, 0.0)
