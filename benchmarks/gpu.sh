@@ -51,14 +51,15 @@ case $phase in
     ;;
   tests)  # the kernels' tests against their references, on the GPU
     set -o pipefail
-    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout 250 python3 -m pytest -q -x -p no:cacheprovider \
+    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout 250 python3 -m pytest -x -p no:cacheprovider \
       tests/test_dp.py tests/test_level1.py tests/test_guards.py tests/test_powersplit.py \
       tests/test_plant.py tests/test_velocity.py tests/test_shard.py 2>&1 | tee "$out/gpu_tests.log" \
       | tail -15
     ;;
-  suite)  # the whole suite on the GPU in 8 processes (about 5 minutes on an H100)
+  suite)  # the whole suite on the GPU in 8 processes (about 5 minutes on an H100 or H200;
+    # no -q: pyproject.toml's addopts has one, and a second drops the closing count line)
     set -o pipefail
-    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout 560 python3 -m pytest -q -n 8 \
+    XLA_PYTHON_CLIENT_PREALLOCATE=false timeout 560 python3 -m pytest -n 8 \
       -p no:cacheprovider tests 2>&1 | tee "$out/gpu_suite.log" | tail -30
     ;;
   *) echo "gpu.sh: unknown phase $phase" >&2; exit 2 ;;
