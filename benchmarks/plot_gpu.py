@@ -1,8 +1,8 @@
 """Plot multilevel's throughput against the batch on a GPU and on the 2-core CPU (a benchmark
 figure for the README's "On a GPU").
 
-    python benchmarks/plot_gpu.py [--gpu docs/bench/gpu/gpu_b*_multilevel.json ...]
-        [--cpu docs/bench/scaling_multilevel.json] [--out docs/bench/gpu/throughput.png]
+    python benchmarks/plot_gpu.py [--gpu docs/bench/gpu/h200/gpu_b*_multilevel.json ...]
+        [--cpu docs/bench/scaling.json] [--out docs/bench/gpu/h200/throughput.png]
 
 GPU points: `bench_sweep.py --devices 1 --strategies multilevel --json` runs, one file per
 batch (`benchmarks/gpu.sh batch`); the label gives the chunk and the peak device memory. CPU
@@ -21,7 +21,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-GPU_DEFAULT = "docs/bench/gpu/gpu_b*_multilevel.json"
+GPU_DEFAULT = "docs/bench/gpu/h200/gpu_b*_multilevel.json"
 
 
 def gpu_points(paths: list[str]) -> list[dict]:
@@ -39,8 +39,8 @@ def gpu_points(paths: list[str]) -> list[dict]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gpu", nargs="*", default=None)
-    ap.add_argument("--cpu", default="docs/bench/scaling_multilevel.json")
-    ap.add_argument("--out", default="docs/bench/gpu/throughput.png")
+    ap.add_argument("--cpu", default="docs/bench/scaling.json")
+    ap.add_argument("--out", default="docs/bench/gpu/h200/throughput.png")
     args = ap.parse_args(argv)
     gpu = gpu_points(args.gpu if args.gpu else sorted(glob.glob(GPU_DEFAULT)))
     if not gpu:
@@ -57,7 +57,7 @@ def main(argv=None) -> int:
                     (p["batch"], p["configs_per_s"]), fontsize=7, textcoords="offset points",
                     xytext=(-20, 8 if i % 2 == 0 else -14))
     ax.loglog([p["batch"] for p in cpu], [p["configs_per_s"] for p in cpu], "s-",
-              label="2 CPU cores, 2 host devices, chunks of one")
+              label=f"2 CPU cores, 2 host devices, chunks of {cpu[0].get('chunk', '?')}")
     ax.axhline(200, color="grey", ls=":", label="target: 200 configurations/s")
     ax.set_xlabel("batch (configurations)")
     ax.set_ylabel("configurations / s")
