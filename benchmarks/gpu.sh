@@ -3,7 +3,10 @@
 # lent GPU machine; no install: its python3 has JAX with CUDA, numpy, optax, pandas, pyarrow,
 # pytest and hypothesis).
 #   bash benchmarks/gpu.sh PHASE [OUT]
-#   PHASE: info | throughput | multilevel | determinism | mpc | batch | float64 | tests | suite
+#   PHASE: info | lease | throughput | multilevel | determinism | mpc | batch | float64 | tests
+#          | suite
+# With a lease of 15 device minutes: `lease` (about 6 minutes on an H200), then `suite` (about
+# 6 minutes) at once on the same warm machine (a start takes 1-2 minutes).
 # JSON files go to OUT (default $OUT, else out/gpu); progress lines on stderr. Compare a run's
 # fuel with a CPU run's: python benchmarks/compare_fuel.py GPU.json CPU.json
 set -u
@@ -16,6 +19,19 @@ case $phase in
   info)
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv
     python3 -c "import jax, numpy; print('jax', jax.__version__, 'numpy', numpy.__version__, jax.devices())"
+    ;;
+  lease)  # the README's GPU table in one call (2026-11-27 on an H200: 242 s to 4096, 8192
+    # about 130 s more; run then in two calls, commands as here): the issue's
+    # batch for conventional, baseline and multilevel, then multilevel at 4096 and 8192 (81 GB:
+    # 8192 needs a 141 GB H200; on an 80 GB H100 the last run fails for memory)
+    timeout 150 $B --batch 1024 --chunk 1024 --strategies conventional,baseline --repeats 2 \
+      --keep-fuel > "$out/gpu_b1024_conv_base.json"
+    timeout 230 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
+      --keep-fuel > "$out/gpu_b1024_multilevel.json"
+    timeout 170 $B --batch 4096 --chunk 4096 --strategies multilevel --repeats 1 \
+      > "$out/gpu_b4096_multilevel.json"
+    timeout 150 $B --batch 8192 --chunk 8192 --strategies multilevel --repeats 1 \
+      > "$out/gpu_b8192_multilevel.json"
     ;;
   throughput)  # the batch, one vmap of the whole batch (the MPC: phase mpc)
     timeout 240 $B --batch 1024 --chunk 1024 --strategies conventional,baseline --repeats 3 \
