@@ -1420,10 +1420,11 @@ assert set(CHUNK) == set(KERNELS), "every strategy has its chunk"
 # 1024 / 4096 configurations (13.6 / 41.4 / 119.9 configurations/s; docs/bench/gpu/). A chunk
 # is then as large as a share of the device's memory allows. Device memory per configuration
 # and Level 3 step in float32 (bytes): multilevel, conventional and baseline from their peaks
-# on that H100 (35.0 GB at 4096, 5.24 GB at 1024, 0.37 GB at 1024 configurations of 5376
-# steps); the others from XLA's CPU buffer sizes (an upper bound: multilevel's is 4x its GPU
-# peak)
-ACCEL_BYTES_PER_STEP = {"multilevel": 1600, "conventional": 960, "baseline": 70,
+# on an H200 (2026-11-27, 43edbbe: 80 988 MiB at 8192, 5 734 and 366 MiB at 1024 configurations
+# of 5376 steps: 1928, 1092 and 70 bytes; multilevel 1835 at 1024; on the H100 of 2026-11-24
+# multilevel took about 1600 at 4096, on earlier code); the others from XLA's
+# CPU buffer sizes (an upper bound: multilevel's is 4x its GPU peak)
+ACCEL_BYTES_PER_STEP = {"multilevel": 1950, "conventional": 1100, "baseline": 70,
                         "multilevel-mpc": 820, "multilevel-eco": 5800, "dp-bound": 63000}
 assert set(ACCEL_BYTES_PER_STEP) == set(KERNELS), "every strategy has its device memory"
 ACCEL_MEMORY_SHARE = 0.6  # of the device's memory limit that a chunk may take
