@@ -22,8 +22,8 @@ case $phase in
     ;;
   lease)  # the README's GPU table in one call (2026-11-27 on an H200: 242 s to 4096, 8192
     # about 130 s more; run then in two calls, commands as here): the issue's
-    # batch for conventional, baseline and multilevel, then multilevel at 4096 and 8192 (81 GB:
-    # 8192 needs a 141 GB H200; on an 80 GB H100 the last run fails for memory)
+    # batch for conventional, baseline and multilevel, then multilevel at 4096 and 8192 (79 GiB:
+    # 8192 needs an H200; on an 80 GB H100 the last run fails for memory)
     timeout 150 $B --batch 1024 --chunk 1024 --strategies conventional,baseline --repeats 2 \
       --keep-fuel > "$out/gpu_b1024_conv_base.json"
     timeout 230 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
