@@ -6,7 +6,7 @@
 #   PHASE: info | lease | throughput | multilevel | determinism | mpc | batch | float64 | tests
 #          | suite
 # With a lease of 15 device minutes: `lease` (about 6 minutes on an H200), then `suite` (about
-# 6 minutes) at once on the same warm machine (a start takes 1-2 minutes).
+# 5 minutes) at once on the same warm machine (a start takes 1-2 minutes).
 # JSON files go to OUT (default $OUT, else out/gpu); progress lines on stderr. Compare a run's
 # fuel with a CPU run's: python benchmarks/compare_fuel.py GPU.json CPU.json
 set -u
