@@ -15,55 +15,51 @@ out=${2:-${OUT:-out/gpu}}
 mkdir -p "$out"
 export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 B="python3 benchmarks/bench_sweep.py --devices 1 --json"
+# one bench_sweep run into $out/FILE: TIMEOUT FILE BATCH CHUNK STRATEGIES REPEATS [ARGS...]
+sweep() {
+  local t=$1 f=$2 b=$3 c=$4 s=$5 r=$6
+  shift 6
+  timeout "$t" $B --batch "$b" --chunk "$c" --strategies "$s" --repeats "$r" "$@" > "$out/$f"
+}
+conv_base() { sweep "$1" gpu_b1024_conv_base.json 1024 1024 conventional,baseline "$2" --keep-fuel; }
+multilevel() { sweep "$1" gpu_b1024_multilevel.json 1024 1024 multilevel 2 --keep-fuel; }
 case $phase in
   info)
     nvidia-smi --query-gpu=name,memory.total,driver_version,clocks.sm,clocks.max.sm --format=csv
     python3 -c "import jax, numpy; print('jax', jax.__version__, 'numpy', numpy.__version__, jax.devices())"
     ;;
   lease)  # the README's GPU table in one call (2026-11-27 on an H200: 242 s to 4096, 8192
-    # about 130 s more; run then in two calls, commands as here): the issue's
-    # batch for conventional, baseline and multilevel, then multilevel at 4096 and 8192 (79 GiB:
-    # 8192 needs an H200; on an 80 GB H100 the last run fails for memory)
-    timeout 150 $B --batch 1024 --chunk 1024 --strategies conventional,baseline --repeats 2 \
-      --keep-fuel > "$out/gpu_b1024_conv_base.json"
-    timeout 230 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
-      --keep-fuel > "$out/gpu_b1024_multilevel.json"
-    timeout 170 $B --batch 4096 --chunk 4096 --strategies multilevel --repeats 1 \
-      > "$out/gpu_b4096_multilevel.json"
-    timeout 150 $B --batch 8192 --chunk 8192 --strategies multilevel --repeats 1 \
-      > "$out/gpu_b8192_multilevel.json"
+    # about 130 s more; run then in two calls, commands as here): the issue's batch for
+    # conventional, baseline and multilevel, then multilevel at 4096 and 8192 (79 GiB: 8192
+    # needs an H200; on an 80 GB H100 the last run fails for memory)
+    conv_base 150 2
+    multilevel 230
+    sweep 170 gpu_b4096_multilevel.json 4096 4096 multilevel 1
+    sweep 150 gpu_b8192_multilevel.json 8192 8192 multilevel 1
     ;;
   throughput)  # the issue's batch, one vmap of the whole batch (the MPC: phase mpc)
-    timeout 240 $B --batch 1024 --chunk 1024 --strategies conventional,baseline --repeats 3 \
-      --keep-fuel > "$out/gpu_b1024_conv_base.json"
-    timeout 330 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
-      --keep-fuel > "$out/gpu_b1024_multilevel.json"
+    conv_base 240 3
+    multilevel 330
     ;;
   multilevel)  # the throughput phase's multilevel run alone
-    timeout 330 $B --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 \
-      --keep-fuel > "$out/gpu_b1024_multilevel.json"
+    multilevel 330
     ;;
   determinism)  # the same with XLA's deterministic GPU ops (scatter-adds in a fixed order):
     # does a configuration's result still depend on its place in the batch? (compare_fuel.py)
-    XLA_FLAGS="--xla_gpu_deterministic_ops=true${XLA_FLAGS:+ $XLA_FLAGS}" timeout 330 $B \
-      --batch 1024 --chunk 1024 --strategies multilevel --repeats 2 --keep-fuel \
-      > "$out/gpu_b1024_multilevel_deterministic.json"
+    export XLA_FLAGS="--xla_gpu_deterministic_ops=true${XLA_FLAGS:+ $XLA_FLAGS}"
+    sweep 330 gpu_b1024_multilevel_deterministic.json 1024 1024 multilevel 2 --keep-fuel
     ;;
   mpc)  # LongHaul's batch of 1024 did not finish its compilation and first call in 400 s
-    timeout 290 $B --route RegionalDelivery --batch 256 --chunk 256 --strategies multilevel-mpc \
-      --repeats 1 --keep-fuel > "$out/gpu_regional_b256_mpc.json"
+    sweep 290 gpu_regional_b256_mpc.json 256 256 multilevel-mpc 1 --route RegionalDelivery \
+      --keep-fuel
     ;;
   batch)  # multilevel's time against the batch (and the chunk)
-    timeout 130 $B --strategies multilevel --repeats 1 --batch 256 --chunk 256 \
-      > "$out/gpu_b256_multilevel.json"
-    timeout 330 $B --strategies multilevel --repeats 1 --batch 2048 --chunk 1024 \
-      > "$out/gpu_b2048_multilevel.json"
-    timeout 210 $B --strategies multilevel --repeats 1 --batch 4096 --chunk 4096 \
-      > "$out/gpu_b4096_multilevel.json"
+    sweep 130 gpu_b256_multilevel.json 256 256 multilevel 1
+    sweep 330 gpu_b2048_multilevel.json 2048 1024 multilevel 1
+    sweep 210 gpu_b4096_multilevel.json 4096 4096 multilevel 1
     ;;
   float64)  # to compare with the CPU's float64 (same batch, same chunk)
-    timeout 120 $B --strategies multilevel --repeats 1 --batch 64 --chunk 64 \
-      --precision float64 --keep-fuel > "$out/gpu_b64_multilevel_f64.json"
+    sweep 120 gpu_b64_multilevel_f64.json 64 64 multilevel 1 --precision float64 --keep-fuel
     ;;
   tests)  # the kernels' tests against their references, on the GPU
     set -o pipefail
