@@ -1117,8 +1117,7 @@ def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
     switch, dt_G at a gear switch, the larger at both; at most the step): that step moves no
     battery power, except driving into M_m (the motor makes the lost speed up after the
     switch). Steps outside `mask` change nothing."""
-    from .plant import sync_energy
-
+    f = _veh(vp)
     P_d, v, P_b = (np.asarray(x, float) for x in (P_d, v, P_b))
     mode, gear, mask = np.asarray(mode), np.asarray(gear), np.asarray(mask)
     P_bi = P_b + float(vp.beta) * P_b * P_b  # eq. 7
@@ -1131,7 +1130,7 @@ def ref_plan_energy(vp: VehicleParams, P_d, v, mode, gear, P_b, dt, mask):
         gsw = g1 != g0 and m1 != MO
         opens[k] = max(float(vp.dt_M) if msw else 0.0, float(vp.dt_G) if gsw else 0.0)
         if (msw or gsw) and float(vp.has_motor) > 0.5:
-            sync[k] = float(sync_energy(vp, m0, g0, m1, g1, v[k])) / float(vp.eta_m)
+            sync[k] = _sync(f, m0, g0, m1, g1, v[k]) / f.eta_m
     out = np.zeros(T)
     for k in range(T):
         if not mask[k]:
@@ -1324,6 +1323,12 @@ def _capable(f, c, E_b, P_need, dt):
     """The state runs and delivers P_need for dt (its motor limited by the battery's energy)."""
     m_hi = min(c.m_lim, c.pm0 + f.eta_m * _pb_of_pbi(f, max(E_b, 0.0) / dt))
     return c.ok and c.e_hi + m_hi >= P_need - 1e-6 * abs(P_need)
+
+
+def ref_sync_energy(vp: VehicleParams, mode0, gear0, mode1, gear1, v) -> float:
+    """Synchronisation energy (J) of the switch (mode0, gear0) -> (mode1, gear1) at speed v
+    (m/s), as `plant.sync_energy`: plain Python on the vehicle's floats."""
+    return _sync(_veh(vp), int(mode0), int(gear0), int(mode1), int(gear1), float(v))
 
 
 def _sync(f, mode0, gear0, mode1, gear1, v):
@@ -1583,4 +1588,4 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     return steps, tot, final
 
 
-__all__ += ["RefPlantStep", "ref_level1", "ref_plant", "ref_track"]
+__all__ += ["RefPlantStep", "ref_level1", "ref_plant", "ref_sync_energy", "ref_track"]

@@ -53,6 +53,12 @@ def run(vp, lam, end_cap=True):
     return P.run_plant(vp, track, greedy, lam, jnp.zeros(()), ps.MO, 0, N_PLANT)
 
 
+# the issue asks the balance to close within 0.1 %; in float64 it closes to rounding, and
+# the smallest loss it counts (the clutch's slip, about 7e-4 of the input on the short
+# track) would pass unnoticed at 0.1 %: the tests hold it to rounding
+BALANCE_RTOL = 1e-9
+
+
 def rel_balance(res, vp):
     e_in, e_out = P.energy_balance(res, vp)
     return float(abs(e_in - e_out) / abs(e_in))
@@ -71,7 +77,7 @@ def test_energy_balance_closes(mass, lam, battery, hybrid):
         vp = vp.conventional()
     res = run(vp, lam)
     assert bool(res.final.done)
-    assert rel_balance(res, vp) < 1e-3
+    assert rel_balance(res, vp) < BALANCE_RTOL
     # each loss is a loss
     t = res.final.tot
     for name in ("loss_engine", "loss_slip", "loss_motor", "loss_battery", "loss_brake",
@@ -144,7 +150,7 @@ def test_catch_up_on_the_battery_only_when_allowed():
 
     assert drawn(without) < drawn(with_b)
     assert float(without.final.tot.trip_time) >= float(with_b.final.tot.trip_time)
-    assert rel_balance(without, VP) < 1e-3
+    assert rel_balance(without, VP) < BALANCE_RTOL
 
 
 def test_motor_alone_recovers_the_reference_whatever_the_plan():
@@ -163,7 +169,7 @@ def test_motor_alone_recovers_the_reference_whatever_the_plan():
     np.testing.assert_array_equal(v_wo, v_w)
     np.testing.assert_array_equal(np.asarray(without.trace.P_b)[:n],
                                   np.asarray(with_b.trace.P_b)[:n])
-    assert rel_balance(without, VP) < 1e-3
+    assert rel_balance(without, VP) < BALANCE_RTOL
 
 
 def fixed_gear(gear, cstate, vp, obs):
@@ -214,7 +220,7 @@ def test_battery_limits_enforced_small_battery():
         res = run(vp, lam)
         E = np.asarray(res.trace.E_b)
         assert E.min() >= -1e-6 and E.max() <= 0.15e6 * (1 + 1e-9)
-        assert rel_balance(res, vp) < 1e-3
+        assert rel_balance(res, vp) < BALANCE_RTOL
 
 
 def test_conventional_idles_and_never_uses_the_motor():
@@ -268,6 +274,7 @@ def test_sync_energy_counts_each_inertia_that_spins_up(v):
 
 
 def test_path_sync_energy_matches_a_loop():
+    # the plant's vectorised path against a loop over the reference's plain synchronisation
     rng = np.random.default_rng(3)
     T = 40
     mode = jnp.asarray(rng.integers(0, 4, T))
@@ -278,7 +285,7 @@ def test_path_sync_energy_matches_a_loop():
     for k in range(1, T):
         m0, g0, m1, g1 = int(mode[k - 1]), int(gear[k - 1]), int(mode[k]), int(gear[k])
         if m1 != m0 or (g1 != g0 and m1 != ps.MO):
-            want[k] = float(P.sync_energy(VP, m0, g0, m1, g1, float(v[k]))) / float(VP.eta_m)
+            want[k] = R.ref_sync_energy(VP, m0, g0, m1, g1, v[k]) / float(VP.eta_m)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
 
 
@@ -381,7 +388,7 @@ def test_final_braking_stores_no_more_than_the_trip_started_with(mass, lam, soc0
     # fuel; the balance closes
     assert float(capped.final.tot.fuel) <= float(free.final.tot.fuel)
     assert float(capped.final.tot.loss_brake) >= float(free.final.tot.loss_brake) - 1e-6
-    assert rel_balance(capped, vp) < 1e-3
+    assert rel_balance(capped, vp) < BALANCE_RTOL
 
 
 def test_final_braking_cap_binds_on_the_reference_truck():
@@ -581,4 +588,4 @@ def test_commanded_motor_power_never_fights_the_service_brakes():
     held = np.r_[False, (mode[1:] == mode[:-1]) & (gear[1:] == gear[:-1])]  # not opened
     regen = (mode == ps.MM) & (P_d < -1.0) & held
     assert regen.sum() > 0 and np.all(P_m[regen] < 0.0)
-    assert rel_balance(res, VP) < 1e-3
+    assert rel_balance(res, VP) < BALANCE_RTOL
