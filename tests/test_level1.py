@@ -4,6 +4,7 @@ a plain NumPy Viterbi loop, MPC against the full horizon, batching and recompila
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -13,7 +14,7 @@ from jaxems import switching as sw
 from jaxems.levels import level1 as l1
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
-from jaxems.reference import numpy_viterbi, ref_braking_loss
+from jaxems.reference import numpy_viterbi, ref_braking_loss, viterbi_path
 
 VP = load_vehicle()
 PRM = sw.SwitchCostParams()
@@ -268,6 +269,37 @@ def test_mpc_short_horizon_is_feasible_and_not_better():
     assert float(mpc.cost) >= float(full.cost) - 1e-6
     _check_result(mpc, vp, P_d, v, grade, lam, PRM, ps.MO * 12, mask)
     assert np.all(np.asarray(mpc.state)[-3:] == np.asarray(mpc.state)[-4])
+
+
+@pytest.mark.parametrize("horizon", [1, 3, 5])
+def test_mpc_short_horizon_follows_a_receding_loop(horizon):
+    # the receding horizon as a plain loop: at each step, Viterbi in NumPy over the window
+    # from the state the kernel is in; the kernel's decision must start a least-cost path of
+    # that window (ties may pick another of equal cost), and masked steps keep the state
+    vp, P_d, v, grade, lam = synthetic_route(seed=7)
+    mask = np.ones(T, bool)
+    mask[9] = False
+    mask[-2:] = False
+    mpc = l1.level1_mpc(vp, P_d, v, grade, lam, DT, mask, ps.MO, 0, PRM, horizon=horizon)
+    H = np.asarray(_htab(vp, P_d, v, lam).H).reshape(T, -1) * DT
+    H[~np.any(np.isfinite(H), axis=1)] = 0.0
+    Cs = np.asarray(_cost_mats(vp, v, grade, np.broadcast_to(lam, v.shape), PRM,
+                               _brake(vp, P_d, v, lam)))
+    state = np.asarray(mpc.state)
+    prev = ps.MO * VP.n_gears
+    for k in range(T):
+        if not mask[k]:
+            assert state[k] == prev, k
+            continue
+        win = slice(k, min(k + horizon, T))
+        init = np.where(np.arange(H.shape[1]) == prev, 0.0, np.inf)
+        best = viterbi_path(H[win], Cs[win], init, mask[win]).cost
+        forced = H[win].copy()
+        forced[0, np.arange(H.shape[1]) != state[k]] = np.inf
+        took = viterbi_path(forced, Cs[win], init, mask[win]).cost
+        assert np.isfinite(best) and took <= best + 1e-9 * abs(best) + 1e-6, (k, took, best)
+        prev = state[k]
+    _check_result(mpc, vp, P_d, v, grade, lam, PRM, ps.MO * VP.n_gears, mask)
 
 
 # ------------------------------------------------------------------------------ batching
