@@ -62,6 +62,22 @@ def test_profile_matches_numpy_loop_bundled(route_name, mass):
     assert float(prof.trip_time) == pytest.approx(trip, rel=1e-10)
 
 
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 40e3))
+def test_profile_with_engine_speed_per_node_matches_numpy_loop(seed, mass):
+    # from the second iteration on, Level 3 predicts with Level 1's engine speed per node
+    # (`repredict_level3`): a varying speed against the loops
+    vp = VP.replace(mass=mass)
+    N, n = MIXED.grade.shape[0], n_nodes(MIXED)
+    w = np.random.default_rng(seed).uniform(700.0, 1800.0, N) * RPM
+    prof = vel._profile_jit(MIXED, vp, w)
+    v, vf, vb, ok = ref_profile(MIXED, vp, w[:n])
+    np.testing.assert_allclose(np.asarray(prof.v)[:n], v, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(prof.v_fwd)[:n], vf, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(prof.v_bwd)[:n], vb, rtol=1e-10, atol=1e-10)
+    assert bool(prof.feasible) == ok
+
+
 @pytest.mark.parametrize("mass,w_rpm", [(20000.0, 1100.0), (40000.0, 800.0)])
 def test_time_grid_matches_numpy_reference(mass, w_rpm):
     vp = VP.replace(mass=mass, w_pred=w_rpm * RPM)
