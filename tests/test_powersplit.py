@@ -4,7 +4,7 @@ P_b grid within the limits (plain NumPy model), and the explicit Table 6 solutio
 import jax
 import jax.numpy as jnp
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from jaxems import xla
@@ -78,10 +78,10 @@ def test_table6_explicit_solution(P_d, rpm, lam):
     """In the interior region the kernel equals the closed form of Table 6."""
     w = rpm * RPM
     v = w / float(VP.gear_ratio[5] * VP.r_d)
+    # about a quarter of the drawn points are interior: the others are redrawn, not passed
+    assume(bool(ps.interior_region(VP, P_d, w, lam)))
     s = split_j(VP, P_d, v, lam)
     Hc, He, Hm, Pbc = ps.explicit_hamiltonians(VP, P_d, w, lam)
-    if not bool(ps.interior_region(VP, P_d, w, lam)):
-        return
     H = np.asarray(s.H)[:, 5]
     np.testing.assert_allclose(H[:3], [Hc, He, Hm], rtol=1e-10)
     np.testing.assert_allclose(float(s.P_b[ps.MC, 5]), float(Pbc), rtol=1e-9, atol=1e-6)
