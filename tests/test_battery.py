@@ -408,17 +408,25 @@ def test_batch_equals_loop_and_no_retrace():
     W3 = np.full_like(P3, W1100)
     vps = stack_vehicles([VP, VP.replace(mass=30e3), VP.replace(E_b_max=2e6, soc0=0.3)])
     batch = b.costate_batch(vps, P3, V3, W3, None, DT_H)
-    for i, vp in enumerate([VP, VP.replace(mass=30e3), VP.replace(E_b_max=2e6, soc0=0.3)]):
+    singles = [VP, VP.replace(mass=30e3), VP.replace(E_b_max=2e6, soc0=0.3)]
+    fields = ("lam", "lam0", "E_b", "status", "n_pieces", "fuel")
+
+    def same(got, one):
+        for name in fields:
+            np.testing.assert_allclose(np.asarray(getattr(got, name)),
+                                       np.asarray(getattr(one, name)), rtol=1e-9, atol=1e-6,
+                                       err_msg=name)
+
+    for i, vp in enumerate(singles):
         one = b.solve_costate(vp, P3[i], V3[i], W3[i], None, DT_H)
-        for name in ("lam", "E_b", "status", "n_pieces", "fuel"):
-            np.testing.assert_allclose(np.asarray(getattr(batch, name))[i],
-                                       np.asarray(getattr(one, name)), rtol=1e-9, atol=1e-6)
-    # routes x vehicles product
+        same(jax.tree_util.tree_map(lambda x, i=i: x[i], batch), one)
+    # routes x vehicles product: every member is its own solve
     prod = b.costate_product(vps, P3[:2], V3[:2], W3[:2], None, DT_H)
     assert prod.lam0.shape == (2, 3)
-    np.testing.assert_allclose(np.asarray(prod.E_b)[1, 2], np.asarray(
-        b.solve_costate(VP.replace(E_b_max=2e6, soc0=0.3), P3[1], V3[1], W3[1], None,
-                        DT_H).E_b), rtol=1e-9, atol=1e-6)
+    for r in range(2):
+        for i, vp in enumerate(singles):
+            one = b.solve_costate(vp, P3[r], V3[r], W3[r], None, DT_H)
+            same(jax.tree_util.tree_map(lambda x, r=r, i=i: x[r, i], prod), one)
     # new values (vehicle, route, start energy) do not recompile, nor do the same values as
     # NumPy scalars instead of (weakly typed) Python floats
     n0 = b._costate_jit._cache_size()
