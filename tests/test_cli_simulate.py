@@ -45,7 +45,8 @@ def test_simulate_conventional_json(capsys):
     assert 1055 / (25 / 3.6) <= d["trip_time_s"] <= 1.1 * 1055 / (25 / 3.6) + 1
     # the conventional truck has no motor: the battery stays where it started (half of 4 MJ)
     assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"] == 2.0e6
-    assert d["mode_switches"] >= 0 and d["gear_switches"] >= 0 and d["fuel_J"] > 0
+    # the 12 % climbs need lower gears than the flat: the truck shifts
+    assert d["gear_switches"] > 0 and d["fuel_J"] > 0
     litres = d["fuel_J"] / LHV_J_PER_KG / DENSITY_KG_PER_L
     assert d["fuel_l_per_100km"] == pytest.approx(litres / (d["length_m"] / 1e5), rel=1e-9)
     assert d["fuel_corrected_J"] == pytest.approx(d["fuel_J"] + d["lambda_b"] * d["delta_Eb_J"])
