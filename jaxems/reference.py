@@ -778,6 +778,51 @@ def ref_dp(vp: VehicleParams, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=30
     return float(np.interp(E0, grid, V))
 
 
+def ref_minimal_switching(dE_plus, dE_minus, E_b0, E_b_end, E_min, E_max, tol=1e-9):
+    """I2b by brute force: the fewest switches between the B+ and B- trajectories.
+
+    The problem `battery.minimal_switching` solves: each step runs on one side, except a
+    switching step, whose fraction sel_k in [0, 1] on B+ is free (the switch falls inside the
+    step); E_b at the step boundaries within [E_min, E_max] (the last one on E_b_end), all
+    within tol. Every set of switching steps, fewest first, from either side, is a linear
+    feasibility problem in its fractions (scipy's HiGHS). Returns (feasible, fewest switches,
+    None where infeasible). Exponential in T: for small tests."""
+    from itertools import combinations
+
+    from scipy.optimize import linprog
+
+    dp, dm = np.asarray(dE_plus, float), np.asarray(dE_minus, float)
+    T = dp.shape[0]
+    delta = dp - dm
+    base = E_b0 + np.cumsum(dm)  # E_b after each step on B-
+    lo = np.full(T, E_min - tol)
+    hi = np.full(T, E_max + tol)
+    lo[-1], hi[-1] = E_b_end - tol, E_b_end + tol
+    below = np.tril(np.ones((T, T)))  # [j, k]: step k comes before the boundary after step j
+
+    def feasible(free, fixed):  # free: steps with a free fraction; fixed: (T,) the others'
+        c0 = base + below @ (fixed * delta)
+        if not free:
+            return bool(np.all((c0 >= lo) & (c0 <= hi)))
+        A = below[:, free] * delta[free][None, :]
+        res = linprog(np.zeros(len(free)), A_ub=np.vstack([A, -A]),
+                      b_ub=np.concatenate([hi - c0, c0 - lo]), bounds=[(0.0, 1.0)] * len(free),
+                      method="highs")
+        return res.status == 0
+
+    if not feasible(list(range(T)), np.zeros(T)):
+        return False, None
+    for n in range(T + 1):
+        for side0 in (0.0, 1.0):
+            for steps in combinations(range(T), n):
+                side = np.full(T, side0)
+                for k in steps:  # the side flips within step k
+                    side[k + 1:] = 1.0 - side[k + 1:]
+                if feasible(list(steps), np.where(np.isin(np.arange(T), steps), 0.0, side)):
+                    return True, n
+    return True, None  # not reached: T free steps include the all-free problem
+
+
 # ---------------------------------------------------------------------------- the pipeline
 class RefPlan(NamedTuple):
     """`reference_plan`'s result. mode, gear, state: (T,) the Level 1 plan (indices); P_b, P_f:
@@ -969,8 +1014,8 @@ __all__ = [
     "a_fwd", "compare_plans", "kernel_level1", "kernel_level2", "kernel_level3", "kernel_plan",
     "numpy_viterbi", "ref_bisect", "ref_cost_matrix", "ref_dp", "ref_end", "ref_fuel_power",
     "ref_gears", "ref_pieces", "ref_prediction", "ref_profile", "ref_split", "ref_steps",
-    "ref_time_grid", "ref_traction_table", "reference_plan", "road_load", "split_table",
-    "viterbi_path",
+    "ref_minimal_switching", "ref_time_grid", "ref_traction_table", "reference_plan",
+    "road_load", "split_table", "viterbi_path",
 ]
 
 
