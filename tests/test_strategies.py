@@ -497,6 +497,22 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
         S.simulate_batch("short_track", VP, "baseline")
 
 
+def test_multilevel_batch_equals_single_runs(runs):
+    """What sweeps run: multilevel's batch path (a vmapped chunk, Level 2 and the plan-keeping
+    Level 1 one configuration at a time inside it) gives each configuration's single run, to
+    the bit in float64 (the second, a lighter truck with a 2 MJ battery, runs another
+    plan)."""
+    vps = [VP, VP.replace(mass=18000.0, E_b_max=2e6)]
+    loop = [runs["multilevel"], S.simulate("short_track", vps[1], "multilevel")]
+    n = max(int(r.prediction.v.shape[0]) for r in loop)
+    out = S.simulate_batch(load_route("short_track"), stack_vehicles(vps), "multilevel",
+                           n_steps=n, chunk=2)
+    for i, r in enumerate(loop):
+        for k in ("fuel_J", "delta_Eb_J", "trip_time_s", "mode_switches", "gear_switches",
+                  "lambda_b"):
+            assert out[k][i] == r[k], (i, k, out[k][i], r[k])
+
+
 def short_shaped_route(rows, vp):
     """A route from (s m, v km/h, grade %, stop s) rows with the short track's shapes (nodes,
     and steps for vp), so that its runs reuse the compilations of the short track's."""
