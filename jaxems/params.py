@@ -100,7 +100,14 @@ class VehicleParams(NamedTuple):
         bad = set(changes) - set(self._fields)
         if bad:
             raise VehicleError(f"unknown vehicle field(s): {', '.join(sorted(bad))}")
-        return self._replace(**{k: np.asarray(v, dtype=np.float64) for k, v in changes.items()})
+        out = {}
+        for k, v in changes.items():
+            try:
+                out[k] = np.asarray(v, dtype=np.float64)
+            except (TypeError, ValueError):
+                raise VehicleError(f"{k}: must be a number or an array of numbers (got "
+                                   f"{v!r})") from None
+        return self._replace(**out)
 
     def conventional(self) -> VehicleParams:
         """The same truck with the motor disconnected for good (the non-hybrid reference)."""

@@ -46,7 +46,9 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -1468,11 +1470,19 @@ def route_arg(route) -> Route:
         return check_route(route)
     from .io import load_route
 
-    return load_route(route)
+    return load_route(_route_path(route))
+
+
+def _route_path(route):
+    """A route given as a path or a name, checked for its type (TypeError naming `route`)."""
+    if not isinstance(route, str | os.PathLike):
+        raise TypeError(f"route: expected a Route, a file path or a bundled route's name (got "
+                        f"{type(route).__name__})")
+    return route
 
 
 def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
-                   n_steps: int | None = None, options: Options | None = None,
+                   n_steps: int | None = None, options: Options | Mapping | None = None,
                    switching: sw.SwitchCostParams | None = None,
                    chunk: int | str | None = "auto", devices=None) -> dict[str, np.ndarray]:
     """Run one strategy for one route and a batch of vehicles in one jitted call.
@@ -1498,8 +1508,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
     dt = _check_dt(dt)
-    opts = resolve_options(options or Options(), vehicles)
-    _check_options(opts)
+    opts = resolve_options(make_options(options), vehicles)
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
@@ -1539,7 +1548,7 @@ class Result:
 
 def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
              dt: float = 1.0, mass_kg: float | None = None, battery_MJ: float | None = None,
-             initial_soc: float | None = None, options: Options | None = None,
+             initial_soc: float | None = None, options: Options | Mapping | None = None,
              switching: sw.SwitchCostParams | None = None, name: str | None = None,
              **option_kw) -> Result:
     """Simulate one strategy on one route with one vehicle; returns a `Result`.
@@ -1555,7 +1564,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     check_strategy(strategy)
     dt = _check_dt(dt)
     opts = make_options(options, **option_kw)
-    rname = name or ("route" if isinstance(route, Route) else route_name(route))
+    rname = name or ("route" if isinstance(route, Route) else route_name(_route_path(route)))
     route = route_arg(route)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
@@ -1583,9 +1592,15 @@ def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
     return opts
 
 
-def make_options(base: Options | None = None, /, **fields) -> Options:
-    """`base` (None: the defaults) with `fields` replaced, checked: ValueError naming an
-    unknown option or a bad value (the one check of `simulate`, sweep files and --option)."""
+def make_options(base: Options | Mapping | None = None, /, **fields) -> Options:
+    """`base` (None: the defaults; a dict: its fields) with `fields` replaced, checked:
+    ValueError naming an unknown option or a bad value (the one check of `simulate`, sweep
+    files and --option)."""
+    if isinstance(base, Mapping):  # the fields as a dict, as a sweep file's table gives them
+        base, fields = None, {**base, **fields}
+    elif base is not None and not isinstance(base, Options):
+        raise TypeError(f"options: expected jaxems.strategies.Options or a dict of its fields "
+                        f"(got {type(base).__name__})")
     bad = sorted(set(fields) - set(Options._fields))
     if bad:
         raise ValueError(f"unknown option {bad[0]!r} (options: {', '.join(Options._fields)})")
@@ -1594,29 +1609,44 @@ def make_options(base: Options | None = None, /, **fields) -> Options:
     return opts
 
 
+# the checks of `make_options`: whole numbers and their least value; true/false options;
+# real numbers, finite, with their range ((lo, hi, lo_open, hi_open); None: unbounded)
+_INT_OPTIONS = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
+                "l2_pieces": 1, "mpc_pieces": 1, "dp_attempts": 1}
+_BOOL_OPTIONS = ("sustain", "guard_sides", "end_cap", "same_open_time")
+_REAL_OPTIONS = {
+    "lam0": (None, 0.0, False, True), "kp": (0.0, None, False, False),
+    "soc_ref": (0.0, 1.0, False, False), "ke_share": (0.0, 1.0, False, False),
+    "dp_penalty": (0.0, None, True, False), "plant_extra": (0.0, 10.0, False, False),
+    "tau_E": (0.0, None, True, False), "eco_lambda_t": (0.0, None, False, False),
+    "eco_time_ratio": (1.0, 1.5, False, False), "eco_overspeed_kmh": (0.0, 15.0, False, False),
+    "mpc_end_reserve": (0.0, 1.0, False, False),
+}
+_MAY_BE_NONE = ("soc_ref", "same_open_time", "eco_lambda_t")
+
+
 def _check_options(o: Options):
-    ints = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
-            "l2_pieces": 1, "mpc_pieces": 1, "dp_attempts": 1}
-    for k, lo in ints.items():
+    """ValueError naming the first bad option: its type (a whole number, true or false, a
+    finite real number) or its range."""
+    for k, lo in _INT_OPTIONS.items():
         v = getattr(o, k)
-        if not (isinstance(v, int) and v >= lo):
+        if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
             raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
-    if not (isinstance(o.eco_time_ratio, int | float) and 1.0 <= o.eco_time_ratio <= 1.5):
-        raise ValueError(f"eco_time_ratio: must be from 1 to 1.5 (got {o.eco_time_ratio!r})")
-    if not (isinstance(o.eco_overspeed_kmh, int | float) and 0 <= o.eco_overspeed_kmh <= 15):
-        raise ValueError(f"eco_overspeed_kmh: must be from 0 to 15 km/h (got "
-                         f"{o.eco_overspeed_kmh!r})")
-    if o.eco_lambda_t is not None and not (isinstance(o.eco_lambda_t, int | float)
-                                           and math.isfinite(o.eco_lambda_t)
-                                           and o.eco_lambda_t >= 0):
-        raise ValueError(f"eco_lambda_t: must be a price of time >= 0 J/s or None (got "
-                         f"{o.eco_lambda_t!r})")
-    if not isinstance(o.end_cap, bool):
-        raise ValueError(f"end_cap: must be True or False (got {o.end_cap!r})")
-    for k in ("soc_ref", "ke_share", "mpc_end_reserve"):
-        if getattr(o, k) is not None and not (0 <= getattr(o, k) <= 1):
-            raise ValueError(f"{k}: must be in [0, 1] (got {getattr(o, k)})")
-    if not (o.lam0 < 0 and o.kp >= 0 and o.dp_penalty > 0 and o.plant_extra >= 0
-            and o.tau_E > 0):
-        raise ValueError("lam0 < 0, kp >= 0, dp_penalty > 0, plant_extra >= 0 and tau_E > 0 "
-                         "are required")
+    for k in _BOOL_OPTIONS:
+        v = getattr(o, k)
+        if not (isinstance(v, bool) or (v is None and k in _MAY_BE_NONE)):
+            raise ValueError(f"{k}: must be true or false (got {v!r})")
+    for k, (lo, hi, lo_open, hi_open) in _REAL_OPTIONS.items():
+        v = getattr(o, k)
+        if v is None and k in _MAY_BE_NONE:
+            continue
+        real = isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool)
+        ok = real and math.isfinite(v)
+        ok = ok and (lo is None or (v > lo if lo_open else v >= lo))
+        ok = ok and (hi is None or (v < hi if hi_open else v <= hi))
+        if not ok:
+            bounds = [f"{'>' if lo_open else '>='} {lo:g}"] if lo is not None else []
+            bounds += [f"{'<' if hi_open else '<='} {hi:g}"] if hi is not None else []
+            none = " or None" if k in _MAY_BE_NONE else ""
+            raise ValueError(f"{k}: must be a finite number {' and '.join(bounds)}{none} "
+                             f"(got {v!r})")

@@ -802,7 +802,7 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     from .report import corrected_l_per_100km
     from .strategies import check_strategy, make_options, simulate
 
-    strategies = list(strategies)
+    strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
         raise ValueError("strategies: none given")
     for s in strategies:

@@ -7,6 +7,8 @@ tolerances are the ones the implementation reaches on this track (see the README
 with the paper), stated per test.
 """
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +20,7 @@ from jaxems import plant as pl
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.io import load_route
+from jaxems.sweep import compare_strategies
 from jaxems.params import VehicleError, load_vehicle, stack_vehicles
 
 VP = load_vehicle().replace(mass=25000.0)
@@ -436,6 +439,37 @@ def test_bad_options_are_clear_errors():
         S.simulate("short_track", VP, "baseline", ke_share=1.5)
     with pytest.raises(ValueError, match="unknown option"):
         S.simulate("short_track", VP, "multilevel", horizon=3)
+    # arguments of the wrong type name the argument
+    for route in (None, 5):
+        with pytest.raises(TypeError, match="^route: expected a Route"):
+            S.simulate(route, VP, "baseline")
+    with pytest.raises(VehicleError, match="^mass: must be a number"):
+        VP.replace(mass="x")
+    with pytest.raises(TypeError, match="^options: expected"):
+        S.simulate("short_track", VP, "baseline", options="n_iter=3")
+    assert S.make_options({"n_iter": 3}, h1=7)[:2] == (3, 7)  # a dict of fields, as sweeps
+    with pytest.raises(ValueError, match="unknown 'nope'"):  # one name, not its letters
+        compare_strategies("short_track", VP, "nope")
+
+
+@pytest.mark.parametrize("name,value,says", [
+    ("kp", float("inf"), "finite number >= 0"),
+    ("lam0", float("-inf"), "finite number < 0"),
+    ("lam0", "x", "finite number < 0"),
+    ("tau_E", float("nan"), "finite number > 0"),
+    ("plant_extra", float("inf"), "<= 10"),
+    ("soc_ref", "half", "or None"),
+    ("sustain", "maybe", "true or false"),
+    ("same_open_time", 1, "true or false"),
+    ("n_iter", True, "whole number"),
+    ("eco_lambda_t", -1.0, ">= 0"),
+])
+def test_bad_option_values_name_the_option(name, value, says):
+    # checked before anything runs: a type or a value that would run to NaN or overflow
+    with pytest.raises(ValueError, match=f"^{name}: must be .*{re.escape(says)}"):
+        S.make_options(**{name: value})
+    assert S.make_options(soc_ref=None, same_open_time=None, eco_lambda_t=None, kp=0,
+                          lam0=np.float32(-2.0)).kp == 0
 
 
 def test_default_chunk_on_a_cpu_and_on_an_accelerator(monkeypatch):
