@@ -46,7 +46,10 @@ DS_DEFAULT = 10.0  # m, default cell length
 DS_RANGE = (1.0, 100.0)  # m, accepted requested cell lengths
 BUCKET = 512  # nodes: routes are padded to a multiple of this so batches share compiles
 SPEED_MAX_KMH = 200.0  # highest accepted speed limit
+SPEED_MIN_KMH = 1.8  # lowest accepted non-zero speed limit: Level 3's crawl floor (0.5 m/s)
 GRADE_MAX_PCT = 30.0  # steepest accepted gradient (either sign)
+STOP_MAX_S = 86400.0  # longest accepted standstill (a day)
+LENGTH_RANGE_M = (1.0, 5.0e6)  # accepted route lengths: the smallest cell to 5000 km
 
 
 class RouteError(ValueError):
@@ -86,8 +89,9 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
     """Validate source rows; `cols` are the file's names of (s, v, grad, stop) for messages.
 
     Raises `RouteError` naming file, line and column for: too few rows, distance not
-    increasing, negative speed or speed above 200 km/h, gradient beyond +-30 %, negative stop
-    time, a stop row (v = 0) with no duration, a stop time on a moving row, no moving row.
+    increasing, a length outside LENGTH_RANGE_M, negative speed, speed above 200 km/h or in (0,
+    1.8) km/h, gradient beyond +-30 %, negative stop time or one above a day, a stop row (v =
+    0) with no duration, a stop time on a moving row, no moving row.
     """
     c_s, c_v, c_g, c_stop = cols
     if len(rows) == 0:
@@ -108,6 +112,11 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
                 f"{_where(source, r.line, c_v)}: speed {r.v_kmh:g} km/h above "
                 f"{SPEED_MAX_KMH:g} km/h"
             )
+        if 0 < r.v_kmh < SPEED_MIN_KMH:
+            raise RouteError(
+                f"{_where(source, r.line, c_v)}: speed {r.v_kmh:g} km/h below "
+                f"{SPEED_MIN_KMH:g} km/h, the slowest the prediction drives (0 marks a stop)"
+            )
         if abs(r.grad_pct) > GRADE_MAX_PCT:
             raise RouteError(
                 f"{_where(source, r.line, c_g)}: gradient {r.grad_pct:g} % beyond "
@@ -116,6 +125,11 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
         if r.stop_s < 0:
             raise RouteError(
                 f"{_where(source, r.line, c_stop)}: negative stop time ({r.stop_s:g} s)"
+            )
+        if r.stop_s > STOP_MAX_S:
+            raise RouteError(
+                f"{_where(source, r.line, c_stop)}: stop time {r.stop_s:g} s above "
+                f"{STOP_MAX_S:g} s (a day)"
             )
         if r.v_kmh == 0 and r.stop_s == 0:
             raise RouteError(
@@ -135,14 +149,21 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
             )
     if all(r.v_kmh == 0 for r in rows):
         raise RouteError(f"{source}: no row with a non-zero speed; the route never moves")
+    length = rows[-1].s_m - rows[0].s_m
+    if not LENGTH_RANGE_M[0] <= length <= LENGTH_RANGE_M[1]:
+        raise RouteError(
+            f"{_where(source, rows[-1].line, c_s)}: route length {length:g} m outside "
+            f"{LENGTH_RANGE_M[0]:g} m to {LENGTH_RANGE_M[1] / 1e3:g} km"
+        )
 
 
 def check_route(route: Route) -> Route:
     """`route` where its arrays are what a route file gives (for routes built or changed in
-    Python; files are checked as they load): ds and length finite and > 0, and on every node
-    the mask keeps a finite gradient within +-GRADE_MAX_PCT, a speed limit in (0,
-    SPEED_MAX_KMH] and a standstill time >= 0; else a `RouteError` naming the field and the
-    node (in a batch, [route, node]). Traced leaves (under `jit`) are left to a concrete call."""
+    Python; files are checked as they load): ds finite and > 0, length in LENGTH_RANGE_M, and
+    on every node the mask keeps a finite gradient within +-GRADE_MAX_PCT, a speed limit in
+    [SPEED_MIN_KMH, SPEED_MAX_KMH] and a standstill time in [0, STOP_MAX_S]; else a
+    `RouteError` naming the field and the node (in a batch, [route, node]). Traced leaves
+    (under `jit`) are left to a concrete call."""
     try:
         leaves = {k: np.asarray(getattr(route, k), dtype=np.float64) for k in Route._fields}
     except TypeError:  # a tracer
@@ -150,13 +171,16 @@ def check_route(route: Route) -> Route:
     keep = leaves["mask"] != 0
     rules = {
         "ds": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m", True),
-        "length": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m",
+        "length": (lambda x: (x >= LENGTH_RANGE_M[0]) & (x <= LENGTH_RANGE_M[1]),
+                   f"must be a distance from {LENGTH_RANGE_M[0]:g} to {LENGTH_RANGE_M[1]:g} m",
                    True),
         "grade": (lambda x: np.isfinite(x) & (np.abs(x) <= GRADE_MAX_PCT / 100),
                   f"must be a finite rise/run within +-{GRADE_MAX_PCT / 100:g}", keep),
-        "vmax": (lambda x: np.isfinite(x) & (x > 0) & (x <= SPEED_MAX_KMH / 3.6),
-                 f"must be a speed limit in (0, {SPEED_MAX_KMH / 3.6:.4g}] m/s", keep),
-        "stop": (lambda x: np.isfinite(x) & (x >= 0), "must be a standstill time >= 0 s", keep),
+        "vmax": (lambda x: (x >= SPEED_MIN_KMH * KMH * (1 - 1e-9)) & (x <= SPEED_MAX_KMH * KMH),
+                 f"must be a speed limit in [{SPEED_MIN_KMH / 3.6:.4g}, "
+                 f"{SPEED_MAX_KMH / 3.6:.4g}] m/s", keep),
+        "stop": (lambda x: (x >= 0) & (x <= STOP_MAX_S),
+                 f"must be a standstill time from 0 to {STOP_MAX_S:g} s", keep),
     }
     for field, (ok, why, where) in rules.items():
         x = leaves[field]

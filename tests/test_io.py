@@ -170,6 +170,11 @@ CSV_HEAD = "distance_m,speed_limit_km_h,gradient_pct,stop_s\n"
         ("0,50,0,0\n-10,50,0,0\n", 3, "distance_m", "not increasing"),
         ("0,201,0,0\n100,50,0,0\n", 2, "speed_limit_km_h", "above 200"),
         ("0,50,31,0\n100,50,0,0\n", 2, "gradient_pct", "beyond"),
+        # values that ran out of memory, overflowed deep in JAX or were silently floored
+        ("0,0,0,1e20\n100,25,0,0\n", 2, "stop_s", "above 86400 s"),
+        ("0,25,0,0\n1e9,25,0,0\n", 3, "distance_m", "route length 1e\\+09 m outside"),
+        ("0,0.001,0,0\n100,0.001,0,0\n", 2, "speed_limit_km_h", "below 1.8 km/h"),
+        ("0,25,0,0\n0.001,25,0,0\n", 3, "distance_m", "outside 1 m"),
     ],
 )
 def test_bad_csv(tmp_path, body, line, col, words):

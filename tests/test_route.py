@@ -219,7 +219,10 @@ def test_elevation_sin_of_slope():
         ("vmax", 5, np.inf, "speed limit"),
         ("stop", 2, -1.0, "standstill time"),
         ("ds", None, 0.0, "finite distance"),
-        ("length", None, np.nan, "finite distance"),
+        ("length", None, np.nan, "distance from"),
+        ("length", None, 1e9, "distance from"),
+        ("vmax", 4, 0.1, "speed limit"),
+        ("stop", 2, 1e20, "standstill time"),
     ],
 )
 def test_check_route_names_the_field_and_the_node(field, node, value, why):
