@@ -372,14 +372,12 @@ def write_report(directory: str | Path, df=None) -> Path:
     df: the results (default `jaxems.sweep.load_sweep(directory)`); an unfinished sweep gives a
     report of the rows so far.
     """
-    import json
-
-    from .sweep import CONFIG_FILE, load_sweep
+    from .sweep import load_sweep, read_record
 
     out = Path(directory)
     if df is None:
         df = load_sweep(out)
-    meta = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))
+    meta = read_record(out)
     canon = meta["canonical"]
     ref = reference_strategy(df)
     figs: list[tuple[Path, str]] = []

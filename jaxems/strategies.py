@@ -1377,7 +1377,8 @@ def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
     return n
 
 
-def _check_dt(dt):
+def check_dt(dt) -> float:
+    """The time step (s) as a float, from 0.05 to 10 s; else ValueError naming dt."""
     if not (isinstance(dt, int | float) and math.isfinite(dt) and 0.05 <= dt <= 10):
         raise ValueError(f"dt: must be a time step from 0.05 to 10 s (got {dt!r})")
     return float(dt)
@@ -1507,7 +1508,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     if isinstance(chunk, str):
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
-    dt = _check_dt(dt)
+    dt = check_dt(dt)
     opts = resolve_options(make_options(options), vehicles)
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
@@ -1562,7 +1563,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     from .io import route_name
 
     check_strategy(strategy)
-    dt = _check_dt(dt)
+    dt = check_dt(dt)
     opts = make_options(options, **option_kw)
     rname = name or ("route" if isinstance(route, Route) else route_name(_route_path(route)))
     route = route_arg(route)

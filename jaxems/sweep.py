@@ -57,11 +57,19 @@ from typing import Any
 
 import numpy as np
 
-from .params import _SCHEMA, VehicleError, VehicleParams, check_number, load_vehicle
+from .params import (
+    _SCHEMA,
+    VehicleError,
+    VehicleParams,
+    check_number,
+    check_vehicle,
+    load_vehicle,
+)
 from .report import CHARGE_SHARE, charge_missed, write_report
 from .route import Route, RouteError
 
 FORMAT_VERSION = 1
+BATCH_SIZE_MAX = 65536  # grid points a chunk at most (a chunk's arrays are padded to it)
 CONFIG_FILE = "sweep.json"
 SOURCE_COPY = "sweep.toml"
 CHUNK_DIR = "chunks"
@@ -149,9 +157,7 @@ class SweepConfig:
 
     def points(self) -> list[dict[str, float]]:
         """The grid points in order (first key slowest), as {user key: value}."""
-        keys = list(self.grid)
-        combos = itertools.product(*self.grid.values())
-        return [dict(zip(keys, vals, strict=True)) for vals in combos]
+        return _grid_points(self.grid)
 
     def canonical(self) -> dict:
         """What identifies the sweep's results: settings and route/vehicle contents, no paths."""
@@ -172,6 +178,22 @@ class SweepConfig:
     def fingerprint(self) -> str:
         blob = json.dumps(self.canonical(), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(blob.encode()).hexdigest()
+
+
+def _grid_points(grid: dict[str, tuple[float, ...]]) -> list[dict[str, float]]:
+    keys = list(grid)
+    return [dict(zip(keys, vals, strict=True)) for vals in itertools.product(*grid.values())]
+
+
+def _check_grid_vehicles(vehicle: VehicleParams, grid: dict[str, tuple[float, ...]]) -> None:
+    """Every grid point's vehicle against the rules `check_vehicle` holds (those across fields
+    too: the engine's speed range); only the grid's fields get a batch axis."""
+    points = _grid_points(grid)
+    changed = {}
+    for key in grid:
+        field, scale, _ = grid_field(key)
+        changed[field] = np.array([p[key] * scale for p in points], dtype=np.float64)
+    check_vehicle(vehicle._replace(**changed))
 
 
 def _sha256(path: Path) -> str:
@@ -288,10 +310,17 @@ def load_config(path: str | Path) -> SweepConfig:
     - ``batch_size`` (16), ``dt_s`` (1.0), ``ds_m`` (10.0), ``precision`` ("float32"),
       ``description``, ``[options.STRATEGY]`` (passed to `simulate_batch` as ``options``).
     """
+    from .strategies import STRATEGIES, check_dt
+
     src = Path(path)
+    if src.is_dir():
+        raise SweepError(f"{path}: a directory, not a sweep file")
     if not src.is_file():
         raise SweepError(f"{path}: no such sweep file")
-    text = src.read_text(encoding="utf-8-sig")
+    try:
+        text = src.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise SweepError(f"{src}: not UTF-8 text (byte {e.start})") from None
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -309,7 +338,14 @@ def load_config(path: str | Path) -> SweepConfig:
         return typ(_check_value(x, kind, f"{src}: {key}"))
 
     batch_size = number("batch_size", 16, "pos", int)
+    if batch_size > BATCH_SIZE_MAX:
+        raise SweepError(f"{src}: batch_size: at most {BATCH_SIZE_MAX} grid points a chunk "
+                         f"(got {batch_size})")
     dt = number("dt_s", 1.0, "pos")
+    try:
+        dt = check_dt(dt)
+    except ValueError as e:
+        raise SweepError(f"{src}: dt_s: {str(e).removeprefix('dt: ')}") from None
     ds = number("ds_m", 10.0, "pos")
     precision = doc.get("precision", "float32")
     if precision not in ("float32", "float64"):
@@ -320,8 +356,6 @@ def load_config(path: str | Path) -> SweepConfig:
         raise SweepError(f"{src}: description: expected a string")
 
     # strategies (validated against the strategies module)
-    from .strategies import STRATEGIES
-
     strategies = doc.get("strategies")
     if isinstance(strategies, str):
         strategies = [strategies]
@@ -390,6 +424,13 @@ def load_config(path: str | Path) -> SweepConfig:
         if len(set(vals)) != len(vals):
             raise SweepError(f"{where}: a value is listed twice ({list(vals)})")
         grid[key] = vals
+
+    # every grid point's vehicle, as its chunk will build it: rules across fields (the
+    # engine's speed range) and the grid's values against the vehicle file's
+    try:
+        _check_grid_vehicles(vehicle, grid)
+    except VehicleError as e:
+        raise SweepError(f"{src}: grid: {e}") from None
 
     routes = _resolve_routes(doc.get("routes"), base, str(src), ds)
     return SweepConfig(
@@ -634,14 +675,23 @@ def _describe_change(old: dict, new: dict) -> str:
     return ", ".join(parts)
 
 
+def read_record(out: Path) -> dict:
+    """The sweep record (`CONFIG_FILE`) of a results directory; `SweepError` naming the file
+    if it cannot be read."""
+    meta_path = Path(out) / CONFIG_FILE
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        if not isinstance(meta, dict) or not isinstance(meta.get("canonical"), dict):
+            raise ValueError("no 'canonical' table")
+    except (OSError, ValueError) as e:
+        raise SweepError(f"{meta_path}: unreadable sweep record ({e})") from None
+    return meta
+
+
 def _recorded_change(cfg: SweepConfig, out: Path) -> tuple[dict, str | None]:
     """(the sweep record in `out`, what differs from `cfg`: None if it is this sweep);
     `SweepError` if the record cannot be read."""
-    meta_path = out / CONFIG_FILE
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as e:
-        raise SweepError(f"{meta_path}: unreadable sweep record ({e})") from None
+    meta = read_record(out)
     if meta.get("fingerprint") == cfg.fingerprint():
         return meta, None
     return meta, _describe_change(meta.get("canonical", {}), cfg.canonical())
@@ -833,6 +883,19 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     return rows
 
 
+def _read_chunk(path: Path):
+    """One chunk file; `SweepError` naming it where it cannot be read (chunks are written
+    whole, so only something outside jaxems truncates one: deleting it lets --resume compute
+    it again)."""
+    import pandas as pd
+
+    try:
+        return pd.read_parquet(path)
+    except Exception as e:  # noqa: BLE001 (pyarrow's errors have no common base but Exception)
+        raise SweepError(f"{path}: unreadable chunk file ({type(e).__name__}: {e}); delete it "
+                         f"and run the sweep again with --resume to compute it again") from None
+
+
 def assemble(out: Path, cfg_canonical: dict | None = None):
     """All finished chunk rows of a results directory, ordered, with the savings columns.
 
@@ -843,12 +906,12 @@ def assemble(out: Path, cfg_canonical: dict | None = None):
 
     out = Path(out)
     if cfg_canonical is None:
-        cfg_canonical = json.loads((out / CONFIG_FILE).read_text(encoding="utf-8"))["canonical"]
+        cfg_canonical = read_record(out)["canonical"]
     files = sorted((out / CHUNK_DIR).glob("*.parquet"))
     files = [p for p in files if not p.name.startswith(".")]
     if not files:
         raise SweepError(f"{out}: no finished chunks yet")
-    df = pd.concat([pd.read_parquet(p) for p in files], ignore_index=True)
+    df = pd.concat([_read_chunk(p) for p in files], ignore_index=True)
     r_order = {r["name"]: i for i, r in enumerate(cfg_canonical["routes"])}
     s_order = {s: i for i, s in enumerate(cfg_canonical["strategies"])}
     df = df.assign(_r=df["route"].map(r_order), _s=df["strategy"].map(s_order))

@@ -8,6 +8,7 @@ reuses the compiled kernel (same shapes).
 
 from __future__ import annotations
 
+import re
 import shutil
 import textwrap
 
@@ -174,6 +175,24 @@ def test_rerun_and_resume_compute_only_what_is_missing(sweep_a, tmp_path, capsys
     io = capsys.readouterr()
     assert io.err == "" and "computed 0 configurations (0 chunks)" in io.out
     same_table(sw.load_sweep(d), full)
+
+
+def test_damaged_results_are_named(sweep_a, tmp_path):
+    # a chunk file or the sweep record damaged outside jaxems (its own writes are whole): an
+    # error naming the file and what to do, not pyarrow's or json's message alone
+    p, out, _ = sweep_a
+    d = tmp_path / "damaged"
+    shutil.copytree(out, d)
+    (d / sw.RESULTS_FILE).unlink()  # the chunks are read
+    chunk = sorted((d / "chunks").glob("*.parquet"))[0]
+    chunk.write_bytes(chunk.read_bytes()[:100])
+    with pytest.raises(sw.SweepError, match=rf"{re.escape(chunk.name)}: unreadable chunk file"
+                                            rf".*delete it.*--resume"):
+        sw.load_sweep(d)
+    chunk.unlink()
+    (d / sw.CONFIG_FILE).write_text("{'canonical': ", encoding="utf-8")
+    with pytest.raises(sw.SweepError, match=rf"{sw.CONFIG_FILE}: unreadable sweep record"):
+        rp.write_report(d)
 
 
 def test_changed_sweep_file_is_refused_by_the_cli(sweep_a, tmp_path, capsys):

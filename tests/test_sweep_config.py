@@ -70,11 +70,29 @@ def test_good_file_parses(tmp_path):
         (GOOD + "[options.multilevel]\nn_iter = 2\n", r"options\.multilevel: not one of"),
         (GOOD.replace("routes", "vehicle = 'no_truck'\nroutes"), r"vehicle: no_truck"),
         ("routes = [", r"not valid TOML"),
+        # checked here, not in every chunk (each chunk failed with the sweep's exit status 0)
+        (GOOD.replace("batch_size = 4", "dt_s = 100\nbatch_size = 4"),
+         r"s\.toml: dt_s: must be a time step from 0\.05 to 10 s \(got 100\.0\)"),
+        (GOOD + "we_min = [1e9]\n", r"s\.toml: grid: we_max\[0\]: must exceed we_min"),
+        (GOOD + "[options.baseline]\nkp = inf\n", r"options\.baseline: kp: must be a finite"),
+        (GOOD + "[options.baseline]\nsustain = 'maybe'\n", r"sustain: must be true or false"),
+        # a chunk's arrays are padded to batch_size: 1e9 ran out of memory on one grid point
+        (GOOD.replace("batch_size = 4", "batch_size = 1000000000"),
+         r"batch_size: at most 65536"),
     ],
 )
 def test_bad_sweep_files_are_refused_naming_key_and_file(tmp_path, text, match):
     with pytest.raises(sw.SweepError, match=match):
         sw.load_config(write(tmp_path, text))
+
+
+def test_sweep_file_not_text_or_a_directory(tmp_path):
+    p = tmp_path / "x.toml"
+    p.write_bytes(b"\xff\xfe routes")
+    with pytest.raises(sw.SweepError, match=r"x\.toml: not UTF-8 text \(byte 0\)"):
+        sw.load_config(p)
+    with pytest.raises(sw.SweepError, match="a directory, not a sweep file"):
+        sw.load_config(tmp_path)
 
 
 def test_bad_route_file_is_named(tmp_path):
