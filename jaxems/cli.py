@@ -31,6 +31,7 @@ from .params import VehicleError
 from .route import RouteError
 
 EXIT_ERROR = 1
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
 
 
 class CLIError(Exception):
@@ -186,24 +187,27 @@ def cmd_predict(args) -> int:
 
     from .levels.velocity import energy_summary, predict_velocity
 
+    from .strategies import check_dt
+    from .sweep import atomic_write_bytes
+
+    dt = check_dt(args.dt)
     _setup_jax()
     name, path, route = _load(args)
     vp = _load_vehicle(args)
-    pred = predict_velocity(route, vp, dt=args.dt)
+    pred = predict_velocity(route, vp, dt=dt)
     out = {
         "route": name,
         "file": str(path),
         "vehicle": str(args.vehicle),
         "mass_kg": float(vp.mass),
-        "dt_s": args.dt,
+        "dt_s": dt,
     } | energy_summary(pred)
     if args.csv:
         m = np.asarray(pred.mask)
         cols = [np.asarray(x)[m] for x in (pred.t, pred.s, pred.v, pred.a, pred.grade, pred.P_d)]
-        with open(args.csv, "w", encoding="utf-8") as fh:
-            fh.write("t_s,s_m,v_m_s,a_m_s2,grade,P_d_W\n")
-            for row in zip(*cols, strict=True):
-                fh.write(",".join(f"{x:.6g}" for x in row) + "\n")
+        lines = ["t_s,s_m,v_m_s,a_m_s2,grade,P_d_W"]
+        lines += [",".join(f"{x:.10g}" for x in row) for row in zip(*cols, strict=True)]
+        atomic_write_bytes(Path(args.csv), ("\n".join(lines) + "\n").encode("utf-8"))
     if args.json:
         print(json.dumps(out))
         return 0
@@ -211,7 +215,7 @@ def cmd_predict(args) -> int:
         [
             ("route", f"{name} ({path})"),
             ("vehicle", f"{args.vehicle}, {out['mass_kg']:.0f} kg"),
-            ("trip time", f"{out['trip_time_s']:.1f} s ({out['steps']} steps of {args.dt:g} s)"),
+            ("trip time", f"{out['trip_time_s']:.1f} s ({out['steps']} steps of {dt:g} s)"),
             (
                 "mean speed",
                 f"{out['mean_speed_km_h']:.2f} km/h over {out['length_m'] / 1000:.3f} km",
@@ -234,7 +238,7 @@ def register_predict(sub) -> None:
     )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
+    p.add_argument("--dt", type=float, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
     p.add_argument("--ds", type=float, default=10.0, help="distance grid step in m (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--csv", metavar="FILE", help="write the time series (t, s, v, a, grade, P_d)")
@@ -430,7 +434,7 @@ def _run_args(p) -> None:
     p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
                    help="starting charge, a fraction of the battery in [0, 1] (overrides the "
                         "vehicle file)")
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s (default 1)")
+    p.add_argument("--dt", type=float, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
     p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                    help="a strategy option (a field of jaxems.strategies.Options, as a sweep "
                         "file's [options] table sets it; VALUE in TOML: sustain=false, "
@@ -505,6 +509,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = " ".join(str(e).split())
         print(f"jaxems: error: {msg}", file=sys.stderr)
         return EXIT_ERROR
+    except KeyboardInterrupt:  # Ctrl-C: a line, not JAX's traceback; files are whole or absent
+        hint = ("; finished chunks are kept: run it again with --resume to go on"
+                if args.command == "sweep" else "")
+        print(f"jaxems: interrupted{hint}", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

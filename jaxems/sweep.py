@@ -637,13 +637,21 @@ def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],
 
 
 # ---------------------------------------------------------------------------- results dir
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write `path` whole or not at all: a temporary file beside it, renamed over it (removed
+    where the write fails or is interrupted)."""
+    path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}-{threading.get_ident()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
 
 
 def _atomic_write_table(path: Path, df) -> None:
@@ -651,7 +659,7 @@ def _atomic_write_table(path: Path, df) -> None:
 
     buf = io.BytesIO()
     df.to_parquet(buf, index=False)
-    _atomic_write_bytes(path, buf.getvalue())
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def _describe_change(old: dict, new: dict) -> str:
@@ -719,11 +727,11 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
         raise SweepError(f"{out}: holds sweep results without {CONFIG_FILE}; refusing to mix "
                          f"them; use another --out directory")
     (out / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
-    _atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
+    atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
     meta = {"fingerprint": cfg.fingerprint(), "canonical": cfg.canonical(),
             "source": str(cfg.source),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-    _atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
+    atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
 
 
 @contextlib.contextmanager

@@ -60,6 +60,36 @@ def test_predict_json_mass_and_csv(capsys, tmp_path):
     assert lines[0] == "t_s,s_m,v_m_s,a_m_s2,grade,P_d_W" and len(lines) == 1 + 152
 
 
+def test_predict_checks_dt_and_writes_its_csv_whole(capsys, tmp_path, monkeypatch):
+    csv = tmp_path / "ts.csv"
+    for dt in ("100", "0.001", "nan"):
+        code, _, err = run(capsys, "predict", "short_track", "--dt", dt, "--csv", str(csv))
+        assert code == 1 and "dt: must be a time step from 0.05 to 10 s" in err
+    assert not csv.exists()
+    # interrupted while writing: no file, no temporary left beside it
+    import jaxems.sweep as sw
+
+    def interrupted(fd):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sw.os, "fsync", interrupted)
+    code, _, err = run(capsys, "predict", "short_track", "--csv", str(csv))
+    assert code == 130 and err == "jaxems: interrupted\n"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_sweep_says_how_to_go_on(capsys, monkeypatch, tmp_path):
+    import jaxems.sweep as sw
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sw, "run_sweep", interrupted)
+    monkeypatch.setattr(sw, "_in_process_devices", lambda n: None)  # this process's devices
+    code, _, err = run(capsys, "sweep", str(tmp_path / "x.toml"))
+    assert code == 130 and "interrupted; finished chunks are kept" in err and "--resume" in err
+
+
 def test_predict_vehicle_file(capsys, tmp_path):
     toml = (ROOT / "data/vehicles/reference_truck.toml").read_text()
     p = tmp_path / "light.toml"
