@@ -186,7 +186,6 @@ def cmd_predict(args) -> int:
     import numpy as np
 
     from .levels.velocity import energy_summary, predict_velocity
-
     from .strategies import check_dt
     from .sweep import atomic_write_bytes
 

@@ -188,12 +188,7 @@ def _grid_points(grid: dict[str, tuple[float, ...]]) -> list[dict[str, float]]:
 def _check_grid_vehicles(vehicle: VehicleParams, grid: dict[str, tuple[float, ...]]) -> None:
     """Every grid point's vehicle against the rules `check_vehicle` holds (those across fields
     too: the engine's speed range); only the grid's fields get a batch axis."""
-    points = _grid_points(grid)
-    changed = {}
-    for key in grid:
-        field, scale, _ = grid_field(key)
-        changed[field] = np.array([p[key] * scale for p in points], dtype=np.float64)
-    check_vehicle(vehicle._replace(**changed))
+    check_vehicle(vehicle._replace(**_grid_leaves(_grid_points(grid))))
 
 
 def _sha256(path: Path) -> str:
@@ -514,10 +509,16 @@ def vehicle_batch(base: VehicleParams, points: Sequence[dict[str, float]]) -> Ve
     B = len(points)
     leaves = {f: np.array(np.broadcast_to(np.asarray(x, np.float64), (B, *np.shape(x))))
               for f, x in zip(VehicleParams._fields, base, strict=True)}
+    return VehicleParams(**(leaves | _grid_leaves(points)))
+
+
+def _grid_leaves(points: Sequence[dict[str, float]]) -> dict[str, np.ndarray]:
+    """{VehicleParams field: (len(points),) its SI values} of the grid's keys."""
+    out = {}
     for key in points[0]:
         field, scale, _ = grid_field(key)
-        leaves[field] = np.array([p[key] * scale for p in points], dtype=np.float64)
-    return VehicleParams(**leaves)
+        out[field] = np.array([p[key] * scale for p in points], dtype=np.float64)
+    return out
 
 
 @dataclasses.dataclass(frozen=True)
