@@ -607,7 +607,20 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
 
 def _compute_remote(task: ChunkTask, route: Route) -> dict[str, Any]:
     """Dask task body (module-level so that workers import it by name)."""
+    _worker_cache()
     return compute_chunk(task, route)
+
+
+def _worker_cache() -> None:
+    """JAX's persistent compilation cache in a worker, from CACHE_ENV as `_executor` set it.
+    JAX reads that variable when it is imported, and a worker spawned from the `jaxems`
+    script imports JAX (re-importing the script) before Dask sets the worker's environment:
+    without this the workers of `jaxems sweep --workers N` compiled every kernel anew."""
+    import jax
+
+    where = os.environ.get(CACHE_ENV)
+    if where and not jax.config.jax_compilation_cache_dir:
+        jax.config.update("jax_compilation_cache_dir", where)
 
 
 def steps_for_route(cfg: SweepConfig, route: Route, chunks: Sequence[Chunk],

@@ -8,9 +8,13 @@ reuses the compiled kernel (same shapes).
 
 from __future__ import annotations
 
+import os
 import re
 import shutil
+import subprocess
+import sys
 import textwrap
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -243,6 +247,25 @@ def test_dask_two_worker_processes_give_the_same_table(sweep_a, tmp_path):
     assert summary.computed_chunks == 4
     same_table(sw.load_sweep(tmp_path / "dask"), sw.load_sweep(out))
     assert jax.config.jax_enable_x64  # the test process's own setting is untouched
+
+
+def test_local_cluster_of_the_command_shares_its_compilation_cache(tmp_path):
+    """`jaxems sweep --workers N`, as a user runs it: the workers, spawned from the `jaxems`
+    script, import JAX before Dask sets their environment, and still cache their kernels in
+    DIR/jax-cache (they compiled every kernel anew before)."""
+    pytest.importorskip("dask.distributed")
+    script = Path(sys.executable).parent / "jaxems"
+    if not script.exists():
+        pytest.skip("the jaxems script is not installed beside this Python")
+    p = tmp_path / "one.toml"
+    p.write_text('routes = ["short_track"]\nstrategies = ["conventional"]\nbatch_size = 2\n'
+                 '[grid]\nmass_kg = [20000, 30000]\n', encoding="utf-8")
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    done = subprocess.run([str(script), "sweep", str(p), "--out", str(tmp_path / "out"),
+                           "--workers", "1", "--quiet", "--no-report"], env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert any((tmp_path / "out" / "jax-cache").iterdir())
 
 
 def test_eco_strategy_in_a_sweep_gets_room_for_its_own_trip(tmp_path):
