@@ -361,14 +361,23 @@ def _ref_speed(track: Track, j, frac):
     return a + frac * (b - a)
 
 
-def _speed_after(vp, v0, F0, P_wheel, dt):
-    """End speed v1 >= 0 when the wheels deliver P_wheel for dt against road load F0."""
+def _motion_short(vp, v0, F0, P_wheel, dt):
+    """(v1, ds): end speed and distance when the wheels deliver P_wheel for dt against road
+    load F0, at constant deceleration. Where even v1 = 0 leaves the energy equation short (a
+    climb the driveline cannot hold, or holds open), the truck stops within the step, after
+    t_s = m v0^2 / (F0 v0 - 2 P_wheel) and v0 t_s / 2, and stands: running the whole step to
+    rest would count road work on distance never driven, which the service brakes then paid
+    in (positive P_brake, a negative brake loss, on a 30 % climb)."""
     a = 0.5 * vp.mass
     b = 0.5 * F0 * dt
     c = -(0.5 * vp.mass * v0 * v0 - b * v0 + P_wheel * dt)
     disc = b * b - 4.0 * a * c
-    v1 = (-b + jnp.sqrt(jnp.maximum(disc, 0.0))) / (2.0 * a)
-    return jnp.where(disc > 0, jnp.maximum(v1, 0.0), 0.0)
+    root = (-b + jnp.sqrt(jnp.maximum(disc, 0.0))) / (2.0 * a)
+    moving = (disc > 0) & (root > 0)
+    den = F0 * v0 - 2.0 * P_wheel  # > 0 wherever the truck stops while moving
+    t_s = jnp.where(den > 0, jnp.clip(vp.mass * v0 * v0 / jnp.where(den > 0, den, 1.0), 0.0, dt),
+                    dt)
+    return jnp.where(moving, root, 0.0), jnp.where(moving, 0.5 * (v0 + root) * dt, 0.5 * v0 * t_s)
 
 
 def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
@@ -549,8 +558,9 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
 
     # --- vehicle motion
     short = P_wheel < P_req - 1e-9 * (1.0 + jnp.abs(P_req))
-    v1 = jnp.where(short, _speed_after(vp, v0, F0, P_wheel, dt), v1_tgt)
-    ds = jnp.where(short, 0.5 * (v0 + v1) * dt, ds_tgt)
+    v1_s, ds_s = _motion_short(vp, v0, F0, P_wheel, dt)
+    v1 = jnp.where(short, v1_s, v1_tgt)
+    ds = jnp.where(short, ds_s, ds_tgt)
     P_wheel = jnp.where(short, (0.5 * vp.mass * (v1**2 - v0**2) + F0 * ds) / dt, P_wheel)
     P_brake = P_wheel - P_p
     arrived = has_stop & (d_stop - ds <= 1e-3) & (v1 <= 1e-9) & ~standing

@@ -1593,8 +1593,12 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             a, b = 0.5 * f.mass, 0.5 * F0 * dt
             cq = -(0.5 * f.mass * v * v - b * v + P_wheel * dt)
             disc = b * b - 4.0 * a * cq
-            v1 = max((-b + math.sqrt(disc)) / (2.0 * a), 0.0) if disc > 0 else 0.0
-            ds = 0.5 * (v + v1) * dt
+            root = (-b + math.sqrt(disc)) / (2.0 * a) if disc > 0 else 0.0
+            if root > 0:
+                v1, ds = root, 0.5 * (v + root) * dt
+            else:  # it stops within the step: m v^2 / 2 = (F0 v / 2 - P_wheel) t_s
+                den = F0 * v - 2.0 * P_wheel
+                v1, ds = 0.0, 0.5 * v * (min(f.mass * v * v / den, dt) if den > 0 else dt)
             P_wheel = (0.5 * f.mass * (v1**2 - v**2) + F0 * ds) / dt
         else:
             v1, ds = v1_tgt, ds_tgt

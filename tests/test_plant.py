@@ -289,6 +289,23 @@ def test_path_sync_energy_matches_a_loop():
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
 
 
+@settings(max_examples=30)
+@given(v0=st.floats(0.0, 30.0), F0=st.floats(-2e4, 8e4), P=st.floats(-3e5, 3e5))
+def test_motion_short_of_the_target_balances_its_energy(v0, F0, P):
+    # m (v1^2 - v0^2) / 2 + F0 ds = P t: over the whole step where the truck keeps moving,
+    # up to its stop (t = 2 ds / v0) where it comes to rest within the step
+    m, dt = float(VP.mass), 1.0
+    v1, ds = (float(x) for x in P_motion(VP, v0, F0, P, dt))
+    assert v1 >= 0.0 and 0.0 <= ds <= 0.5 * (v0 + v1) * dt + 1e-12
+    t = dt if v1 > 0 else (2.0 * ds / v0 if v0 > 0 else 0.0)
+    assert t <= dt + 1e-12
+    assert 0.5 * m * (v1**2 - v0**2) + F0 * ds == pytest.approx(P * t, rel=1e-9,
+                                                                   abs=1e-6 * (1 + abs(P)))
+
+
+P_motion = xla.jit(P._motion_short)
+
+
 def np_mean_grade(s, ds):
     """Mean gradient of ROUTE over [s, min(s + ds, L)] by summing the cells' overlaps (the
     gradient at s where that stretch is empty)."""

@@ -560,6 +560,23 @@ def short_shaped_route(rows, vp):
     return route
 
 
+def test_a_climb_the_truck_cannot_hold_costs_no_brake_energy():
+    """A 30 % climb at 25 t: the truck crawls and stalls where a switch opens the driveline.
+    Stopping within a step, it runs only the distance to rest: the service brakes never put
+    energy in (they did, 0.18 MJ over the climb, where the plant ran the whole step to rest)."""
+    route = short_shaped_route([(0, 25, 0, 0), (300, 25, 30, 0), (500, 25, 0, 0),
+                                (1000, 25, 0, 0)], VP)
+    for name in ("conventional", "baseline"):
+        vp = VP.conventional() if name == "conventional" else VP
+        r = S.simulate(route, VP, name)
+        tot = r.plant.final.tot
+        assert r["status"] == "ok" and float(tot.loss_slip) >= 0.0
+        assert float(np.max(np.asarray(r.trace.P_brake))) <= 1e-6, name
+        assert float(tot.loss_brake) >= -1e-6, (name, float(tot.loss_brake))
+        e_in, e_out = (float(x) for x in pl.energy_balance(r.plant, vp))
+        assert abs(e_in - e_out) <= 1e-9 * e_in, name
+
+
 def braking_route():
     """1.5 km at 60 km/h, a 3 % climb over 600 m, then flat, braking to a stop at the end
     (`short_shaped_route` at 20 t)."""
