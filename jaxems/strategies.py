@@ -1237,8 +1237,21 @@ def bound_dp(vp, pred: l3.Prediction, tab: BoundTables, goal, n_E: int,
     (E_end, _), (path, lam_path, cost, Pb_path) = jax.lax.scan(
         fwd, (jnp.asarray(E0, dtype), s_init), (V_next, tab.dep, tab.fix, tab.C, pred.mask))
     i0, _, _ = _interp_grid(E0, dE, n_E)
-    lam0 = (V_0[i0 + 1, path[0]] - V_0[i0, path[0]]) / dE
+    lam0 = _bound_costate(V_0[:, path[0]], i0, dE)
     return BoundPath(state=path, lam=lam_path, cost=cost, P_b=Pb_path, E_end=E_end, lam0=lam0)
+
+
+def _bound_costate(V, i0, dE):
+    """The bound's lambda_b at the start: dV/dE_b of the value function V (n_E,) of the first
+    state, on the grid interval [i0, i0 + 1] that holds E_b(t0), or on the one below where a
+    point of it is (partly) infeasible (a full battery: its values there mix in BIG), within
+    Level 2's bracket (a run started full at 200 MJ reported +4e7 before, and a corrected fuel
+    of -4e12 J)."""
+    clean = lambda i: V[jnp.clip(i, 0, V.shape[0] - 1)] < 1e-3 * BIG  # noqa: E731
+    up = (V[i0 + 1] - V[i0]) / dE
+    down = (V[i0] - V[jnp.maximum(i0 - 1, 0)]) / dE
+    use_down = ~(clean(i0) & clean(i0 + 1)) & clean(i0 - 1) & clean(i0) & (i0 > 0)
+    return jnp.clip(jnp.where(use_down, down, up), *l2.LAM_BRACKET)
 
 
 def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:

@@ -363,6 +363,17 @@ def test_dp_bound_grid_refinement():
     assert abs(fuel[101, 96] - base) / base < 1e-3
 
 
+def test_dp_bound_costate_from_a_full_battery(runs):
+    """Started full, the bound's value function mixes in its infeasible states above the start:
+    its costate comes from the grid interval below, within Level 2's bracket (+4e7 before at
+    200 MJ, a corrected fuel of -4e12 J reported ok)."""
+    for battery in (4.0, 200.0):
+        r = S.simulate("short_track", VP, "dp-bound", battery_MJ=battery, initial_soc=1.0)
+        lo, hi = S.l2.LAM_BRACKET
+        assert r["status"] == "ok" and lo <= r["lambda_b"] <= hi, (battery, r["lambda_b"])
+        assert 0.0 < r["fuel_corrected_J"] < runs["conventional"]["fuel_J"], battery
+
+
 def test_dp_bound_tables_are_the_splits_and_switching_costs():
     """dp-bound's candidates are each state's optimal split at each candidate costate (the
     brute-force `reference.split_table`: fuel, and the battery's energy change from eq. 7),
