@@ -368,6 +368,7 @@ def cmd_compare(args) -> int:
     fuel), the runs one after the other.
     """
     from .io import resolve_route
+    from .strategies import level2_names
     from .sweep import compare_strategies, option_pairs
 
     strategies = comma_list(args.strategies)
@@ -385,7 +386,8 @@ def cmd_compare(args) -> int:
     out = {"route": rows[0]["route"], "file": str(path), "vehicle": str(args.vehicle),
            "mass_kg": float(vp.mass), "battery_MJ": float(vp.E_b_max) / 1e6,
            "initial_soc": float(vp.soc0), "dt_s": float(args.dt), "options": options,
-           "rows": [_json_safe(r) for r in rows]}
+           "rows": [_json_safe(r | {"level2_status": level2_names(r["level2_status"])})
+                    for r in rows]}
     if args.json:
         print(json.dumps(out))
         return 0

@@ -857,9 +857,9 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
                        **options) -> list[dict]:
     """Several strategies on one route with one vehicle, as a sweep compares them.
 
-    route: a path or bundled name; vehicle: `VehicleParams` or a name or path; mass_kg,
-    battery_MJ, initial_soc: overrides; options: fields of `strategies.Options`, for every
-    strategy. Everything is checked before anything compiles (an unknown or repeated strategy,
+    route: a `Route`, a path or a bundled name; vehicle: `VehicleParams` or a name or path;
+    mass_kg, battery_MJ, initial_soc: overrides; options: fields of `strategies.Options`, for
+    every strategy. Everything is checked before anything compiles (an unknown or repeated strategy,
     a bad option or value: ValueError naming it). progress(row) is called after each run.
 
     Returns one dict per strategy, in the order given: `Result.as_dict()` plus the sweep's
@@ -869,10 +869,10 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     """
     import pandas as pd
 
-    from .io import resolve_route, route_name
+    from .io import route_name
     from .params import with_overrides
     from .report import corrected_l_per_100km
-    from .strategies import check_strategy, make_options, simulate
+    from .strategies import check_strategy, make_options, route_arg, simulate
 
     strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
@@ -884,11 +884,11 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     opts = make_options(None, **options)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ, initial_soc=initial_soc)
-    path = resolve_route(route)
-    name = name or route_name(path)
+    name = name or ("route" if isinstance(route, Route) else route_name(route))
+    route = route_arg(route)  # loaded and checked once
     rows = []
     for s in strategies:
-        row = simulate(str(path), vp, s, dt=dt, options=opts, name=name).as_dict()
+        row = simulate(route, vp, s, dt=dt, options=opts, name=name).as_dict()
         rows.append(row)
         if progress is not None:
             progress(row)

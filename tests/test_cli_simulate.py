@@ -293,6 +293,7 @@ def test_compare_cli_json_and_table(capsys):
     assert row["strategy"] == "conventional" and row["status"] == "ok"
     assert row["saving_vs_conventional_pct"] == 0.0 and row["saving_vs_baseline_pct"] is None
     assert row["fuel_corrected_J"] == row["fuel_J"] and row["charge_missed"] is False
+    assert row["level2_status"] is None  # as simulate --json: names, None without a Level 2
     code, out, err = run(capsys, "compare", "short_track", "--strategies", "conventional",
                          "--mass", "25000")
     assert code == 0 and "conventional" in err  # progress on stderr

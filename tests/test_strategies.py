@@ -435,7 +435,7 @@ def test_dp_bound_predicts_what_the_plant_burns(runs):
     assert abs(r["fuel_J"] - float(ex.fuel_dp_J)) / float(ex.fuel_dp_J) < 0.05
 
 
-def test_bad_options_are_clear_errors():
+def test_bad_options_are_clear_errors(runs):
     with pytest.raises(ValueError, match="strategy"):
         S.simulate("short_track", VP, "eco")
     with pytest.raises(ValueError, match="mass_kg"):
@@ -461,6 +461,8 @@ def test_bad_options_are_clear_errors():
     assert S.make_options({"n_iter": 3}, h1=7)[:2] == (3, 7)  # a dict of fields, as sweeps
     with pytest.raises(ValueError, match="unknown 'nope'"):  # one name, not its letters
         compare_strategies("short_track", VP, "nope")
+    (row,) = compare_strategies(load_route("short_track"), VP, "baseline")  # a Route too
+    assert row["route"] == "route" and row["fuel_J"] == runs["baseline"]["fuel_J"]
 
 
 @pytest.mark.parametrize("name,value,says", [
