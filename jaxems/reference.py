@@ -1290,7 +1290,15 @@ def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, 
         E, s = E + dEb[k, j, s1], s1
     u = E0 / dE
     i0 = min(max(int(math.floor(u)), 0), n_E - 2)
-    lam0 = (V[0][i0 + 1, state[0]] - V[0][i0, state[0]]) / dE
+    # the costate at the start on an interval of feasible values (the one below where one
+    # above mixes in the infeasible), within Level 2's bracket
+    v0 = V[0][:, state[0]]
+    clean = [x < 1e-3 * big for x in v0]
+    if not (clean[i0] and clean[i0 + 1]) and i0 > 0 and clean[i0 - 1] and clean[i0]:
+        lam0 = (v0[i0] - v0[i0 - 1]) / dE
+    else:
+        lam0 = (v0[i0 + 1] - v0[i0]) / dE
+    lam0 = min(max(lam0, LAM_BRACKET[0]), LAM_BRACKET[1])
     # the value at E0 of the first decision: that of the start state, or the best when free
     first = [q(V[1], 0, E0, s1)[0] + (C[0, s_init, s1] if s_init >= 0 else 0.0)
              for s1 in range(S)] if mask[0] else None
