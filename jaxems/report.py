@@ -76,14 +76,16 @@ def corrected_l_per_100km(df) -> np.ndarray:
     return df["fuel_l_per_100km"].to_numpy(np.float64) * scale
 
 
-def fleet_saving(df, ref: str):
+def fleet_saving(df, ref: str, n_per_cell: int | None = None):
     """Fleet saving (%) per (strategy, mass_kg, battery_MJ): 100 (sum F_ref - sum F) / sum F_ref.
 
     Sums of corrected fuel over routes and over the other grid parameters. A cell counts only
     when every one of its (route, grid point) pairs finished with status ok for both the
-    strategy and the reference; otherwise its saving is NaN (a fleet saving over a subset of
-    the routes would not be comparable between cells). Returns a DataFrame with columns
-    strategy, mass_kg, battery_MJ, saving_pct, n (pairs ok), n_total (pairs in the cell).
+    strategy and the reference, and, where n_per_cell is given (the sweep's routes times its
+    other grid points), all of them are there (an unfinished sweep lacks some); otherwise its
+    saving is NaN (a fleet saving over a subset of the routes would not be comparable between
+    cells). Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n
+    (pairs ok), n_total (pairs the cell holds, n_per_cell where given).
     """
     import pandas as pd
 
@@ -94,20 +96,26 @@ def fleet_saving(df, ref: str):
     rows = []
     for (s, mass, bat), g in m.groupby(["strategy", "mass_kg", "battery_MJ"], sort=True):
         ok = (g["status"] == "ok") & (g["status_ref"] == "ok")
+        total = len(g) if n_per_cell is None else n_per_cell
         fr = g["F_ref"].sum()
-        sav = 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr if ok.all() else np.nan
+        whole = ok.all() and len(g) == total
+        sav = 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr if whole else np.nan
         rows.append({"strategy": s, "mass_kg": mass, "battery_MJ": bat, "saving_pct": sav,
-                     "n": int(ok.sum()), "n_total": len(g)})
+                     "n": int(ok.sum()), "n_total": total})
     return pd.DataFrame(rows, columns=cols)
 
 
 def best_battery(fleet) -> object:
     """Per (strategy, mass): the battery with the largest fleet saving, and the smallest battery
-    whose saving is within `SUFFICIENT_PP` percentage points of it."""
+    whose saving is within `SUFFICIENT_PP` percentage points of it. A mass with a battery whose
+    cell has no fleet saving (a run that did not finish, an unfinished sweep) is left out: its
+    best would be the best of the others."""
     import pandas as pd
 
     rows = []
-    for (s, mass), g in fleet.dropna(subset=["saving_pct"]).groupby(["strategy", "mass_kg"]):
+    for (s, mass), g in fleet.groupby(["strategy", "mass_kg"]):
+        if g["saving_pct"].isna().any():
+            continue
         g = g.sort_values("battery_MJ")
         i = int(np.argmax(g["saving_pct"].to_numpy()))
         best = g.iloc[i]
@@ -284,7 +292,9 @@ def _fmt(x) -> str:
     if isinstance(x, float | np.floating):
         if not np.isfinite(x):
             return ""
-        return f"{x:.4g}" if abs(x) < 1e5 else f"{x:.6g}"
+        if x == int(x) and abs(x) < 1e15:  # grid values, counts: every digit (20000, 40004)
+            return f"{x:.0f}"
+        return f"{x:.4g}" if abs(x) < 1e3 else f"{x:.6g}"
     return html.escape(str(x))
 
 
@@ -354,14 +364,15 @@ def summary_table(df, ref: str | None):
             row = {"route": r, "strategy": s, "rows": len(d), "ok": len(ok),
                    "charge_missed": int(np.sum(missed & sel)),
                    "level2_exhausted": int(np.sum(exhausted & sel)),
-                   "fuel_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok) else np.nan,
-                   "l_per_100km_mean": np.nanmean(corrected_l_per_100km(ok)) if len(ok)
-                   else np.nan}
+                   "fuel_corrected_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok)
+                   else np.nan,
+                   "fuel_corrected_l_per_100km_mean": np.nanmean(corrected_l_per_100km(ok))
+                   if len(ok) else np.nan}
             if ref is not None:
                 sv = d[f"saving_vs_{ref}_pct"].dropna()
                 row |= {f"saving_vs_{ref}_mean_pct": sv.mean() if len(sv) else np.nan,
-                        "min_pct": sv.min() if len(sv) else np.nan,
-                        "max_pct": sv.max() if len(sv) else np.nan}
+                        f"saving_vs_{ref}_min_pct": sv.min() if len(sv) else np.nan,
+                        f"saving_vs_{ref}_max_pct": sv.max() if len(sv) else np.nan}
             rows.append(row)
     return pd.DataFrame(rows)
 
@@ -382,9 +393,13 @@ def write_report(directory: str | Path, df=None) -> Path:
     ref = reference_strategy(df)
     figs: list[tuple[Path, str]] = []
     fleet = best = None
+    # the (route, grid point) pairs of a fleet cell: routes x the grid's other points
+    per_cell = len(canon["routes"]) * int(np.prod(
+        [len(v) for k, v in canon["grid"].items() if k not in ("mass_kg", "battery_MJ")]))
     if ref is not None:
-        fleet = fleet_saving(df, ref)
-        best = best_battery(fleet[fleet["strategy"] != ref])
+        fleet = fleet_saving(df, ref, per_cell)
+        fleet = fleet[fleet["strategy"] != ref]
+        best = best_battery(fleet)
         p = plot_fleet_heatmap(out, fleet, ref)
         if p:
             figs.append((p, f"fleet saving (%) against {ref} over mass x battery, all routes"))
@@ -429,13 +444,15 @@ def write_report(directory: str | Path, df=None) -> Path:
     parts.append("<h2>Figures</h2>")
     parts += [_img(p, alt) for p, alt in figs]
     parts.append("<h2>Numbers</h2>")
-    parts.append(_table(summary_table(df, ref), "per route and strategy (status ok rows)"))
+    parts.append(_table(summary_table(df, ref), "per route and strategy (rows: all; means "
+                                                "of corrected fuel over the status ok rows)"))
     if best is not None and not best.empty:
         parts.append(_table(best, f"best battery per mass (fleet saving against {ref}; "
-                                  f"sufficient: smallest within {SUFFICIENT_PP:g} pp)"))
+                                  f"sufficient: smallest within {SUFFICIENT_PP:g} pp; a mass "
+                                  f"with a cell that did not finish is left out)"))
     if fleet is not None and not fleet.empty:
-        parts.append(_table(fleet[fleet["strategy"] != ref],
-                            f"fleet saving against {ref} per mass and battery"))
+        parts.append(_table(fleet, f"fleet saving against {ref} per mass and battery (blank: "
+                                   f"a run of the cell did not finish or is missing)"))
     bad = df[df["status"] != "ok"]
     if len(bad):
         parts.append(_table(bad[["route", "strategy", *grid_cols, "status"]],
