@@ -22,15 +22,18 @@ import time
 
 import numpy as np
 
+from jaxems.cli import positive_int
+
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--strategies", default="conventional")
-    ap.add_argument("--batch", type=int, default=8)
-    ap.add_argument("--lengths", default="1,4")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--batch", type=positive_int, default=8)
+    ap.add_argument("--lengths", type=lambda t: [positive_int(x) for x in t.split(",")],
+                    default=[1, 4], help="comma-separated tilings of LongHaul (default 1,4)")
+    ap.add_argument("--repeats", type=positive_int, default=3)
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
 
@@ -49,7 +52,7 @@ def main(argv=None) -> int:
            "repeats": args.repeats, "strategies": {}}
     for name in (st.check_strategy(x) for x in args.strategies.split(",")):
         points = {}
-        for k in (int(x) for x in args.lengths.split(",")):
+        for k in args.lengths:
             route = load_route("LongHaul")
             if k > 1:
                 route = tile_route(route, k)
@@ -77,4 +80,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("bench_length", main))

@@ -36,6 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxems import dp, stack_vehicles, xla
+from jaxems.cli import positive_int
 from jaxems import switching as sw
 from jaxems.levels import level1 as l1
 from jaxems.levels import powersplit as ps
@@ -127,10 +128,10 @@ dp_vmapped = xla.jit(jax.vmap(_one_config, in_axes=(-1, -1, -1), out_axes=-1))
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true")
-    ap.add_argument("--batch", type=int, default=1000)
-    ap.add_argument("--steps", type=int, default=4500)
-    ap.add_argument("--chunk", type=int, default=250)
-    ap.add_argument("--horizon", type=int, default=500)
+    ap.add_argument("--batch", type=positive_int, default=1000)
+    ap.add_argument("--steps", type=positive_int, default=4500)
+    ap.add_argument("--chunk", type=positive_int, default=250)
+    ap.add_argument("--horizon", type=positive_int, default=500)
     ap.add_argument("--quick", action="store_true", help="small sizes (smoke run)")
     a = ap.parse_args(argv)
     if a.quick:
@@ -271,4 +272,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("bench_level1", main))

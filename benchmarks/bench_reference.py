@@ -193,4 +193,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("bench_reference", main))

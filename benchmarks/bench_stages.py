@@ -37,14 +37,16 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxems.cli import positive_int
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--route", default="LongHaul")
-    ap.add_argument("--batch", type=int, default=4)
-    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--batch", type=positive_int, default=4)
+    ap.add_argument("--repeats", type=positive_int, default=5)
     ap.add_argument("--precision", choices=("float32", "float64"), default="float32")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
@@ -149,4 +151,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("bench_stages", main))

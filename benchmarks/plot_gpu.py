@@ -15,6 +15,7 @@ import argparse
 import glob
 import json
 import sys
+from pathlib import Path
 
 import matplotlib
 
@@ -64,10 +65,13 @@ def main(argv=None) -> int:
     ax.set_title("multilevel on LongHaul (108 km), float32")
     ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=120)
     print(f"wrote {args.out}", file=sys.stderr)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("plot_gpu", main))

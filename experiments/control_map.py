@@ -30,6 +30,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
 from jaxems.levels import powersplit as ps  # noqa: E402
+from jaxems.cli import positive_float  # noqa: E402
 from jaxems.params import KMH, RPM, load_vehicle  # noqa: E402
 
 COLORS = {ps.MC: "tab:purple", ps.ME: "tab:red", ps.MM: "tab:green", ps.MO: "0.8"}
@@ -45,12 +46,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="experiments/out")
     ap.add_argument("--vehicle", default="reference_truck")
-    ap.add_argument("--speed-kmh", type=float, default=83.0)
+    ap.add_argument("--speed-kmh", type=positive_float, default=83.0)
     ap.add_argument("--gear", type=int, default=12, help="gear number 1..12")
     ap.add_argument("--pd-kw", type=float, default=100.0, help="P_d# of Figures 7 and 8")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     vp = load_vehicle(a.vehicle)
+    n_gears = int(vp.gear_ratio.shape[0])
+    if not 1 <= a.gear <= n_gears:
+        raise ValueError(f"--gear: a gear number from 1 to {n_gears} (got {a.gear})")
     g = a.gear - 1
     v = a.speed_kmh * KMH
     w = float(vp.gear_ratio[g] * vp.r_d * v)
@@ -144,4 +148,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("control_map", main))

@@ -22,6 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from jaxems.cli import positive_float  # noqa: E402
 from jaxems.io import load_route  # noqa: E402
 from jaxems.levels.velocity import predict_velocity  # noqa: E402
 from jaxems.params import KMH, load_vehicle  # noqa: E402
@@ -52,7 +53,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--route", default="short_track", help="route file or bundled name")
-    ap.add_argument("--mass", type=float, default=25000.0, help="vehicle mass (kg)")
+    ap.add_argument("--mass", type=positive_float, default=25000.0, help="vehicle mass (kg)")
     args = ap.parse_args(argv)
     vp = load_vehicle().replace(mass=args.mass, v_cruise=25.0 * KMH)
     route = load_route(args.route)
@@ -85,4 +86,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("level3_short_track", main))

@@ -57,4 +57,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("table_a1", main))

@@ -21,6 +21,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxems.cli import positive_float  # noqa: E402
 from jaxems.levels.powersplit import MODE_SHORT  # noqa: E402
 from jaxems.params import KMH, load_vehicle  # noqa: E402
 from jaxems.switching import SwitchCostParams, table_a2  # noqa: E402
@@ -32,8 +33,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--vehicle", default="reference_truck")
-    ap.add_argument("--mass", type=float, default=25000.0, help="kg (default 25000)")
-    ap.add_argument("--speed-kmh", type=float, default=25.0)
+    ap.add_argument("--mass", type=positive_float, default=25000.0, help="kg (default 25000)")
+    ap.add_argument("--speed-kmh", type=positive_float, default=25.0)
     ap.add_argument(
         "--mode",
         choices=["Mc", "Me", "Mm"],
@@ -41,7 +42,7 @@ def main(argv=None) -> int:
         help="mode after the switch (its traction recovers the speed)",
     )
     ap.add_argument("--lambda-t", type=float, default=-25e3, help="J/s (default -25000)")
-    ap.add_argument("--tau", type=float, default=1.0, help="open driveline time (s)")
+    ap.add_argument("--tau", type=positive_float, default=1.0, help="open driveline time (s)")
     a = ap.parse_args(argv)
     vp = load_vehicle(a.vehicle).replace(mass=a.mass)
     rows = table_a2(
@@ -74,4 +75,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    from jaxems.cli import script_main
+
+    raise SystemExit(script_main("table_a2", main))

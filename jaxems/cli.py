@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
 import sys
@@ -492,13 +493,44 @@ def print_result(name: str, compute, as_json: bool, fmt) -> int:
     """The experiment scripts' ending: out = compute(), printed as one JSON object (as_json)
     or as fmt(out); a bad input (ValueError, OSError: route, vehicle and option errors) is one
     line `NAME: error: ...` on stderr and exit status 1."""
-    try:
+    def run():
         out = compute()
+        print(json.dumps(out) if as_json else fmt(out))
+
+    return script_main(name, run)
+
+
+def script_main(name: str, main, *args) -> int:
+    """An experiment's or a benchmark's entry: main(*args), its exit status; a bad input
+    (ValueError, OSError: route, vehicle, option and argument errors) is one line
+    `NAME: error: ...` on stderr and exit status 1, not a traceback."""
+    try:
+        return int(main(*args) or 0)
     except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
         print(f"{name}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return EXIT_ERROR
-    print(json.dumps(out) if as_json else fmt(out))
-    return 0
+
+
+def positive_int(text: str) -> int:
+    """argparse type: a whole number >= 1 (a batch, a count of repeats or steps)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1 (got {text!r})") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1 (got {n})")
+    return n
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (a mass, a speed, a time)."""
+    try:
+        x = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0 (got {text!r})") from None
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0 (got {text})")
+    return x
 
 
 def main(argv: Sequence[str] | None = None) -> int:
