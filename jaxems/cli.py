@@ -513,23 +513,21 @@ def script_main(name: str, main, *args) -> int:
 
 def positive_int(text: str) -> int:
     """argparse type: a whole number >= 1 (a batch, a count of repeats or steps)."""
-    try:
-        n = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1 (got {text!r})") from None
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1 (got {n})")
-    return n
+    return _positive(text, int, "a whole number >= 1")
 
 
 def positive_float(text: str) -> float:
     """argparse type: a finite number > 0 (a mass, a speed, a time)."""
+    return _positive(text, float, "a finite number > 0")
+
+
+def _positive(text: str, cast, what: str):
     try:
-        x = float(text)
+        x = cast(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number > 0 (got {text!r})") from None
+        raise argparse.ArgumentTypeError(f"expected {what} (got {text!r})") from None
     if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0 (got {text})")
+        raise argparse.ArgumentTypeError(f"expected {what} (got {text})")
     return x
 
 
