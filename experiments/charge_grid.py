@@ -118,7 +118,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     def compute():
-        strategies = comma_list(args.strategies)
+        strategies = comma_list(args.strategies, "--strategies")
         return run_grid(args.route, _floats(args.masses, "masses"), _floats(args.socs, "socs"),
                         strategies, args.vehicle)
 
@@ -126,4 +126,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    sys.exit(script_main("charge_grid", main))

@@ -141,11 +141,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="out/eco", help="folder of the plots (out/eco)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    routes = comma_list(args.routes)
+    routes = comma_list(args.routes, "--routes")
     return print_result("eco_velocity", lambda: run_eco(routes, args.mass, args.dt,
                                                         args.vehicle, args.out),
                         args.json, format_table)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    sys.exit(script_main("eco_velocity", main))

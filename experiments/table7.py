@@ -152,11 +152,13 @@ def main(argv=None) -> int:
     ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
-    strategies = comma_list(args.strategies)
+    strategies = comma_list(args.strategies, "--strategies")
     return print_result("table7", lambda: run_table(args.route, args.mass, strategies, args.dt,
                                                     args.n_iter, args.vehicle),
                         args.json, format_table)
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    sys.exit(script_main("table7", main))

@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--route", default="short_track", help="route file or bundled name")
     ap.add_argument("--mass", type=float, default=25000.0, help="vehicle mass in kg (25000)")
     args = ap.parse_args(argv)
-    figs = [f.upper() for f in comma_list(args.figures)]
+    figs = [f.upper() for f in comma_list(args.figures, "--figures")]
     bad = [f for f in figs if f not in FIGURES]
     if bad:
         print(f"traces: error: unknown figure(s) {', '.join(bad)} (A2, A3, A4)", file=sys.stderr)
@@ -91,4 +91,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from jaxems.cli import script_main
+
+    sys.exit(script_main("traces", main))

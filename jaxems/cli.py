@@ -94,9 +94,13 @@ def _load(args):
     return route_name(path), path, load_route(path, ds=args.ds)
 
 
-def comma_list(text: str) -> list[str]:
-    """The items of a comma-separated option, stripped, empty ones dropped."""
-    return [x.strip() for x in text.split(",") if x.strip()]
+def comma_list(text: str, what: str | None = None) -> list[str]:
+    """The items of a comma-separated option, stripped, empty ones dropped; where `what` names
+    the option, none at all is a ValueError naming it."""
+    items = [x.strip() for x in text.split(",") if x.strip()]
+    if what is not None and not items:
+        raise ValueError(f"{what}: none given")
+    return items
 
 
 def format_or_dash(x, fmt: str) -> str:
