@@ -1479,20 +1479,22 @@ def default_chunk(strategy: str, backend: str | None = None, n_steps: int = 5376
 
 def route_arg(route) -> Route:
     """A route argument of the API: a `Route` (checked, `route.check_route`: it may have been
-    built or changed in Python) or a file path or bundled route name (loaded, and so checked)."""
+    built or changed in Python) or a file path or bundled route name (loaded, and so checked;
+    anything else is a TypeError naming `route`)."""
+    return named_route(route)[1]
+
+
+def named_route(route, name: str | None = None) -> tuple[str, Route]:
+    """(the name results carry, the checked `Route`) of a route argument (`route_arg`): name,
+    else the file's stem, else "route" for a `Route` built in Python."""
     if isinstance(route, Route):
-        return check_route(route)
-    from .io import load_route
-
-    return load_route(_route_path(route))
-
-
-def _route_path(route):
-    """A route given as a path or a name, checked for its type (TypeError naming `route`)."""
+        return name or "route", check_route(route)
     if not isinstance(route, str | os.PathLike):
         raise TypeError(f"route: expected a Route, a file path or a bundled route's name (got "
                         f"{type(route).__name__})")
-    return route
+    from .io import load_route, route_name
+
+    return name or route_name(route), load_route(route)
 
 
 def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: float = 1.0,
@@ -1573,13 +1575,10 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     `SwitchCostParams` (None: the defaults; `switching.checked_params`). Bad options raise
     ValueError naming the option.
     """
-    from .io import route_name
-
     check_strategy(strategy)
     dt = check_dt(dt)
     opts = make_options(options, **option_kw)
-    rname = name or ("route" if isinstance(route, Route) else route_name(_route_path(route)))
-    route = route_arg(route)
+    rname, route = named_route(route, name)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
                                       initial_soc=initial_soc))

@@ -859,8 +859,9 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
 
     route: a `Route`, a path or a bundled name; vehicle: `VehicleParams` or a name or path;
     mass_kg, battery_MJ, initial_soc: overrides; options: fields of `strategies.Options`, for
-    every strategy. Everything is checked before anything compiles (an unknown or repeated strategy,
-    a bad option or value: ValueError naming it). progress(row) is called after each run.
+    every strategy. Everything is checked before anything compiles (an unknown or repeated
+    strategy, a bad option or value: ValueError naming it). progress(row) is called after each
+    run.
 
     Returns one dict per strategy, in the order given: `Result.as_dict()` plus the sweep's
     fuel_corrected_J and saving_vs_{conventional,baseline}_pct (`add_savings`: positive = less
@@ -869,10 +870,9 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     """
     import pandas as pd
 
-    from .io import route_name
     from .params import with_overrides
     from .report import corrected_l_per_100km
-    from .strategies import check_strategy, make_options, route_arg, simulate
+    from .strategies import check_strategy, make_options, named_route, simulate
 
     strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
@@ -884,8 +884,7 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     opts = make_options(None, **options)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ, initial_soc=initial_soc)
-    name = name or ("route" if isinstance(route, Route) else route_name(route))
-    route = route_arg(route)  # loaded and checked once
+    name, route = named_route(route, name)  # loaded and checked once
     rows = []
     for s in strategies:
         row = simulate(route, vp, s, dt=dt, options=opts, name=name).as_dict()
