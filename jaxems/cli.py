@@ -28,9 +28,6 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from .params import VehicleError
-from .route import RouteError
-
 EXIT_ERROR = 1
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
 
@@ -505,12 +502,12 @@ def print_result(name: str, compute, as_json: bool, fmt) -> int:
 
 
 def script_main(name: str, main, *args) -> int:
-    """An experiment's or a benchmark's entry: main(*args), its exit status; a bad input
-    (ValueError, OSError: route, vehicle, option and argument errors) is one line
-    `NAME: error: ...` on stderr and exit status 1, not a traceback."""
+    """The entry of `jaxems` and of the experiments and benchmarks: main(*args), its exit
+    status; a bad input (ValueError, OSError, CLIError: route, vehicle, option and argument
+    errors) is one line `NAME: error: ...` on stderr and exit status 1, not a traceback."""
     try:
         return int(main(*args) or 0)
-    except (ValueError, OSError) as e:  # RouteError, VehicleError are ValueErrors
+    except (ValueError, OSError, CLIError) as e:  # RouteError, VehicleError are ValueErrors
         print(f"{name}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return EXIT_ERROR
 
@@ -539,11 +536,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the command line; returns the exit status (0 ok, 1 bad input, 2 bad usage)."""
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
-    except (RouteError, VehicleError, CLIError, ValueError, OSError) as e:
-        msg = " ".join(str(e).split())
-        print(f"jaxems: error: {msg}", file=sys.stderr)
-        return EXIT_ERROR
+        return script_main("jaxems", args.func, args)
     except KeyboardInterrupt:  # Ctrl-C: a line, not JAX's traceback; files are whole or absent
         hint = ("; finished chunks are kept: run it again with --resume to go on"
                 if args.command == "sweep" else "")
