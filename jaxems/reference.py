@@ -1294,7 +1294,7 @@ def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, 
     # above mixes in the infeasible), within Level 2's bracket
     v0 = V[0][:, state[0]]
     clean = [x < 1e-3 * big for x in v0]
-    if not (clean[i0] and clean[i0 + 1]) and i0 > 0 and clean[i0 - 1] and clean[i0]:
+    if clean[i0] and not clean[i0 + 1] and i0 > 0 and clean[i0 - 1]:
         lam0 = (v0[i0] - v0[i0 - 1]) / dE
     else:
         lam0 = (v0[i0 + 1] - v0[i0]) / dE

@@ -1250,7 +1250,7 @@ def _bound_costate(V, i0, dE):
     clean = lambda i: V[jnp.clip(i, 0, V.shape[0] - 1)] < 1e-3 * BIG  # noqa: E731
     up = (V[i0 + 1] - V[i0]) / dE
     down = (V[i0] - V[jnp.maximum(i0 - 1, 0)]) / dE
-    use_down = ~(clean(i0) & clean(i0 + 1)) & clean(i0 - 1) & clean(i0) & (i0 > 0)
+    use_down = clean(i0) & ~clean(i0 + 1) & clean(i0 - 1) & (i0 > 0)
     return jnp.clip(jnp.where(use_down, down, up), *l2.LAM_BRACKET)
 
 
