@@ -93,7 +93,6 @@ def test_interrupted_sweep_says_how_to_go_on(capsys, monkeypatch, tmp_path):
 def test_scripts_end_bad_input_in_one_line(capsys):
     # the experiments' and benchmarks' entry (`script_main`) and argument types
     import argparse
-    import importlib.util
 
     from jaxems.cli import positive_float, positive_int, script_main
 
@@ -108,12 +107,6 @@ def test_scripts_end_bad_input_in_one_line(capsys):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a"):
             f(text)
     assert positive_int("3") == 3 and positive_float("2.5") == 2.5
-    path = ROOT / "experiments" / "control_map.py"
-    spec = importlib.util.spec_from_file_location("exp_control_map", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    assert script_main("control_map", mod.main, ["--gear", "0"]) == 1  # gear 0 drew gear 12
-    assert "--gear: a gear number from 1 to 12 (got 0)" in capsys.readouterr().err
 
 
 def test_predict_vehicle_file(capsys, tmp_path):

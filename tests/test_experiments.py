@@ -222,3 +222,11 @@ def test_mpc_gap_level1_at_a_given_costate_is_the_mpc(capsys):
     assert gap.main(["--h1", "0"]) == 1
     assert "--h1: expected comma-separated whole numbers >= 1" in capsys.readouterr().err
     assert gap.main(["--h1", "five"]) == 1
+
+
+def test_control_map_refuses_a_gear_out_of_range(capsys):
+    from jaxems.cli import script_main
+
+    control_map = _script("control_map")
+    assert script_main("control_map", control_map.main, ["--gear", "0"]) == 1  # drew gear 12
+    assert "--gear: a gear number from 1 to 12 (got 0)" in capsys.readouterr().err
