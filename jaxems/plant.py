@@ -214,12 +214,18 @@ def capacity(r: Ranges):
     return jnp.where(r.ok, r.e_hi + r.m_lim, -jnp.inf)
 
 
+def deliverable(vp: VehicleParams, r: Ranges, E_b, dt):
+    """Largest power (W) each state of `all_ranges` delivers for dt seconds, its motor limited
+    by what the battery holds; -inf where it cannot run."""
+    pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
+    m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
+    return jnp.where(r.ok, r.e_hi + m_hi, -jnp.inf)
+
+
 def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt):
     """Bool per state of `all_ranges`: it runs and delivers P_need for dt seconds (the motor's
     power is limited by what the battery holds)."""
-    pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
-    m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
-    return r.ok & (r.e_hi + m_hi >= P_need - 1e-6 * jnp.abs(P_need))
+    return deliverable(vp, r, E_b, dt) >= P_need - 1e-6 * jnp.abs(P_need)
 
 
 def _pb_of_pbi(vp, P_bi):
@@ -388,19 +394,31 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     driveline: switched into, it must also at v_after, the speed left after the open time), or
     at rest (`requested_serves`); else stay in s_cur where it still serves (no hunting), else
     the requested mode in the gear of least H (at lam) that serves, else the state of least H
-    that serves, else the most capable. Every state is evaluated; the plant calls it only
-    where the requested state does not serve (`shard.shortcut`). Scalars in, int32 () out."""
+    that serves, else s_cur where it runs (not open) and delivers at least what any other
+    state could at v_after, else the state of least H that serves at v_op, else the most
+    capable. Every state is evaluated; the plant calls it only where the requested state does
+    not serve (`shard.shortcut`). Scalars in, int32 () out."""
     n_g = vp.gear_ratio.shape[-1]
     keep, _ = requested_serves(vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt)
     r_now = all_ranges(vp, v_op)
-    ok_now = capable(vp, r_now, E_b, P_need, dt)
-    ok_after = ok_now & capable(vp, all_ranges(vp, v_after), E_b, P_need, dt)
+    give_now = deliverable(vp, r_now, E_b, dt)
+    give_after = deliverable(vp, all_ranges(vp, v_after), E_b, dt)
+    tol = 1e-6 * jnp.abs(P_need)
+    ok_now = give_now >= P_need - tol
+    ok_after = ok_now & (give_after >= P_need - tol)
     table = ps.mode_gear_split(vp, P_need, v_op, lam)
     Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
     best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
     best_now = jnp.argmin(jnp.where(ok_now, Hf, jnp.inf))
+    # where no state serves after a switch, a switch delivers no more than its state can after
+    # the open time: the current state stays where it runs and delivers at least that (on a
+    # climb too steep to shift on, a downshift for power would stall the truck)
+    others = jnp.arange(Hf.shape[0]) != s_cur
+    stay = ((s_cur // n_g) != MO) & (give_now[s_cur] >= jnp.max(jnp.where(others, give_after,
+                                                                             -jnp.inf)))
     best = jnp.where(jnp.any(ok_after), best_after,
-                     jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(r_now))))
+                     jnp.where(stay, s_cur,
+                               jnp.where(jnp.any(ok_now), best_now, jnp.argmax(capacity(r_now)))))
     same_mode = (jnp.arange(Hf.shape[0]) // n_g) == (s_req // n_g)
     in_mode = jnp.where(same_mode & ok_after, Hf, jnp.inf)
     alt = jnp.argmin(in_mode)
@@ -421,6 +439,28 @@ def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, 
     ok_req = serves(v_op)
     req_ok = jnp.where(s_req == s_cur, ok_req, ok_req & serves(v_after))
     return req_ok | at_rest, jnp.asarray(s_req, jnp.int32)
+
+
+def held_top_speed(vp: VehicleParams, mode, gear, F0, E_b, dt):
+    """The top speed (m/s) of state (mode, gear) where the truck cannot shift up out of it:
+    the speed lost while a gear switch holds the driveline open (road load F0 for dt_G) leaves
+    the mode's next gear unable to hold that speed (below its engine's idle, or short of the
+    power, its motor limited by the battery's energy E_b), or there is no next gear; +inf
+    where it can, and in the open mode. The plant does not accelerate past it: launched in
+    gear 1 on a 30 % climb, a truck crawls up at gear 1's top speed instead of running past
+    it, upshifting into a stall and launching again. Scalars in, () out."""
+    n_g = vp.gear_ratio.shape[-1]
+    ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
+    cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode] & (vp.has_motor > 0.5)
+    w_top = jnp.minimum(jnp.where(ce, vp.we_max, jnp.inf), jnp.where(cm, vp.wm_max, jnp.inf))
+    v_top = w_top / (jnp.asarray(vp.gear_ratio)[gear] * vp.r_d)
+    v_esc = jnp.maximum(jnp.where(jnp.isfinite(v_top), v_top, 0.0)
+                        - jnp.maximum(F0, 0.0) * vp.dt_G / vp.mass, 0.1)
+    P_hold = jnp.maximum(F0, 0.0) * jnp.where(jnp.isfinite(v_top), v_top, 0.0)
+    up = jnp.minimum(gear + 1, n_g - 1)
+    escapes = (gear < n_g - 1) & capable(vp, state_ranges(vp, mode, up, v_esc), E_b, P_hold, dt)
+    # a hair below the top, so that rounding keeps the engine within its speed range there
+    return jnp.where((mode != MO) & ~escapes, v_top * (1.0 - 1e-5), jnp.inf)
 
 
 def protection(dt):
@@ -460,6 +500,11 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # short of its target lies a little back on the same stretch)
     grade = _mean_grade(track, s0, ds_tgt)
     F0 = pt.road_load(vp, v0, grade)
+    # not past the top speed of a gear the truck cannot shift up out of (never slower than it
+    # runs: the cap limits acceleration only)
+    v_held = jnp.maximum(held_top_speed(vp, st.mode, st.gear, F0, st.E_b, dt), v0)
+    v1_tgt = jnp.minimum(v1_tgt, v_held)
+    ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)
     P_req = (0.5 * vp.mass * (v1_tgt**2 - v0**2) + F0 * ds_tgt) / dt
     # the powertrain runs at the step's start speed (at the mean target speed when launching)
     v_op = jnp.where(v0 > 0, v0, ds_tgt / dt)

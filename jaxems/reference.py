@@ -1372,10 +1372,16 @@ def _pb_of_pbi(f, P_bi):
     return (math.sqrt(max(1.0 + 4.0 * f.beta * P_bi, 0.0)) - 1.0) / (2.0 * f.beta)
 
 
+def _deliverable(f, c, E_b, dt):
+    """The most the state delivers for dt (its motor limited by the battery's energy); -inf
+    where it cannot run."""
+    m_hi = min(c.m_lim, c.pm0 + f.eta_m * _pb_of_pbi(f, max(E_b, 0.0) / dt))
+    return c.e_hi + m_hi if c.ok else -math.inf
+
+
 def _capable(f, c, E_b, P_need, dt):
     """The state runs and delivers P_need for dt (its motor limited by the battery's energy)."""
-    m_hi = min(c.m_lim, c.pm0 + f.eta_m * _pb_of_pbi(f, max(E_b, 0.0) / dt))
-    return c.ok and c.e_hi + m_hi >= P_need - 1e-6 * abs(P_need)
+    return _deliverable(f, c, E_b, dt) >= P_need - 1e-6 * abs(P_need)
 
 
 def ref_sync_energy(vp: VehicleParams, mode0, gear0, mode1, gear1, v) -> float:
@@ -1403,7 +1409,9 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
     """Level 0 (`plant.protected_state`), evaluating every state: the requested state where it
     serves (at v_op, and at v_after when switched into) or at rest; else the current one where
     it serves; else the requested mode's gear of least H that serves after the switch; else
-    the state of least H that serves after, else now; else the most capable."""
+    the state of least H that serves after; else the current one where it runs (not open)
+    and delivers at least what any other could after the switch; else the state of least H
+    that serves now; else the most capable."""
     G = f.gear_ratio.shape[0]
     S = N_MODES * G
 
@@ -1425,10 +1433,34 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
         return int(np.argmin(in_mode))
     if any(ok_after):
         return int(np.argmin([H[s] if ok_after[s] else np.inf for s in range(S)]))
+    # no switch serves after its open time: stay where the current state delivers as much
+    if s_cur // G != MO and _deliverable(f, caps(s_cur, v_op), E_b, dt) >= max(
+            _deliverable(f, caps(s, v_after), E_b, dt) for s in range(S) if s != s_cur):
+        return s_cur
     if any(ok_now):
         return int(np.argmin([H[s] if ok_now[s] else np.inf for s in range(S)]))
     cap = [c.e_hi + c.m_lim if c.ok else -np.inf for c in (caps(s, v_op) for s in range(S))]
     return int(np.argmax(cap))
+
+
+def _held_top(f, mode, gear, F0, E_b, dt):
+    """`plant.held_top_speed`: the top speed (m/s) of (mode, gear) where its mode's next gear,
+    after a gear switch's open time under road load F0, could not hold that speed (or there
+    is none); +inf where it could, and in the open mode."""
+    G = f.gear_ratio.shape[0]
+    tops = []
+    if ENGINE_CONNECTED[mode]:
+        tops.append(f.we_max)
+    if MOTOR_CONNECTED[mode] and f.has_motor > 0.5:
+        tops.append(f.wm_max)
+    if mode == MO or not tops:
+        return math.inf
+    v_top = min(tops) / float(f.gear_ratio[gear] * f.r_d)
+    v_esc = max(v_top - max(F0, 0.0) * f.dt_G / f.mass, 0.1)
+    if gear < G - 1 and _capable(f, _state_caps(f, mode, gear + 1, v_esc), E_b,
+                                 max(F0, 0.0) * v_top, dt):
+        return math.inf
+    return v_top * (1.0 - 1e-5)
 
 
 def ref_track(route: Route, pred, end_cap: bool = True) -> SimpleNamespace:
@@ -1532,6 +1564,10 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             i = int(np.searchsorted(tk.grid_s, s, side="right")) - 1
             grade = float(tk.grade[min(max(i, 0), tk.grade.shape[0] - 1)])
         F0 = float(road_load(f, v, grade))
+        # not past the top speed of a gear the truck cannot shift up out of (the gradient
+        # stays the one of the target's distance)
+        v1_tgt = min(v1_tgt, max(_held_top(f, mode, gear, F0, E_b, dt), v))
+        ds_tgt = min(0.5 * (v + v1_tgt) * dt, d_stop)
         P_req = (0.5 * f.mass * (v1_tgt**2 - v**2) + F0 * ds_tgt) / dt
         v_op = v if v > 0 else ds_tgt / dt
         lam = float(c_lam[k])
