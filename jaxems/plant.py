@@ -441,24 +441,38 @@ def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, 
     return req_ok | at_rest, jnp.asarray(s_req, jnp.int32)
 
 
-def held_top_speed(vp: VehicleParams, mode, gear, F0, E_b, dt):
-    """The top speed (m/s) of state (mode, gear) where the truck cannot shift up out of it:
-    the speed lost while a gear switch holds the driveline open (road load F0 for dt_G) leaves
-    the mode's next gear unable to hold that speed (below its engine's idle, or short of the
-    power, its motor limited by the battery's energy E_b), or there is no next gear; +inf
-    where it can, and in the open mode. The plant does not accelerate past it: launched in
-    gear 1 on a 30 % climb, a truck crawls up at gear 1's top speed instead of running past
-    it, upshifting into a stall and launching again. Scalars in, () out."""
-    n_g = vp.gear_ratio.shape[-1]
+ESCAPE_MARGIN = 1.6  # what a state taking over after a switch must deliver, over holding speed
+
+
+def _top_speed(vp: VehicleParams, mode, gear):
+    """Top speed (m/s) of (mode, gear): where a connected engine or motor reaches its largest
+    speed; +inf in the open mode (and in the motor modes of a truck without a motor)."""
     ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
     cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode] & (vp.has_motor > 0.5)
     w_top = jnp.minimum(jnp.where(ce, vp.we_max, jnp.inf), jnp.where(cm, vp.wm_max, jnp.inf))
-    v_top = w_top / (jnp.asarray(vp.gear_ratio)[gear] * vp.r_d)
-    v_esc = jnp.maximum(jnp.where(jnp.isfinite(v_top), v_top, 0.0)
-                        - jnp.maximum(F0, 0.0) * vp.dt_G / vp.mass, 0.1)
-    P_hold = jnp.maximum(F0, 0.0) * jnp.where(jnp.isfinite(v_top), v_top, 0.0)
+    return w_top / (jnp.asarray(vp.gear_ratio)[gear] * vp.r_d)
+
+
+def held_top_speed(vp: VehicleParams, mode, gear, F0, E_b, dt):
+    """The top speed (m/s) of state (mode, gear) where the truck could not leave it for a
+    faster one: after the speed a switch's open second takes (road load F0 for dt_G), none of
+    the next gear in M_c, M_e or M_m, or the same gear in M_m, would run with ESCAPE_MARGIN
+    times the power of holding that speed (below its engine's idle, or short of the power, its
+    motor limited by the battery's energy E_b); +inf where one would, and in the open mode.
+    The plant does not accelerate past it: launched in gear 1 on a 30 % climb, a truck crawls
+    up at gear 1's top speed instead of running past it, being switched into a stall and
+    launching again. Scalars in, () out."""
+    n_g = vp.gear_ratio.shape[-1]
+    v_top = _top_speed(vp, mode, gear)
+    top = jnp.where(jnp.isfinite(v_top), v_top, 0.0)
+    v_esc = jnp.maximum(top - jnp.maximum(F0, 0.0) * vp.dt_G / vp.mass, 0.1)
     up = jnp.minimum(gear + 1, n_g - 1)
-    escapes = (gear < n_g - 1) & capable(vp, state_ranges(vp, mode, up, v_esc), E_b, P_hold, dt)
+    modes = jnp.asarray([ps.MC, ps.ME, ps.MM, ps.MM])
+    gears = jnp.stack([up, up, up, gear])
+    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v_esc))(modes, gears)
+    faster = jax.vmap(lambda m, g: _top_speed(vp, m, g))(modes, gears) > top * (1.0 + 1e-9)
+    holds = deliverable(vp, r, E_b, dt) >= ESCAPE_MARGIN * jnp.maximum(F0, 0.0) * v_esc
+    escapes = jnp.any(faster & holds)
     # a hair below the top, so that rounding keeps the engine within its speed range there
     return jnp.where((mode != MO) & ~escapes, v_top * (1.0 - 1e-5), jnp.inf)
 

@@ -67,9 +67,10 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from .levels.powersplit import ENGINE_CONNECTED, MM, MO, MOTOR_CONNECTED, N_MODES
+from .levels.powersplit import ENGINE_CONNECTED, MC, ME, MM, MO, MOTOR_CONNECTED, N_MODES
 from .levels.velocity import P_PENALTY_W, V_CRAWL, steps_for
 from .params import VehicleParams
+from .plant import ESCAPE_MARGIN
 from .route import Route, n_nodes
 from .switching import STRANDED_J, SwitchCostParams
 
@@ -1443,23 +1444,29 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
     return int(np.argmax(cap))
 
 
-def _held_top(f, mode, gear, F0, E_b, dt):
-    """`plant.held_top_speed`: the top speed (m/s) of (mode, gear) where its mode's next gear,
-    after a gear switch's open time under road load F0, could not hold that speed (or there
-    is none); +inf where it could, and in the open mode."""
-    G = f.gear_ratio.shape[0]
-    tops = []
-    if ENGINE_CONNECTED[mode]:
-        tops.append(f.we_max)
+def _top(f, mode, gear):
+    """Top speed (m/s) of (mode, gear), +inf where nothing connected limits it."""
+    tops = [f.we_max] if ENGINE_CONNECTED[mode] else []
     if MOTOR_CONNECTED[mode] and f.has_motor > 0.5:
         tops.append(f.wm_max)
-    if mode == MO or not tops:
+    return min(tops) / float(f.gear_ratio[gear] * f.r_d) if tops else math.inf
+
+
+def _held_top(f, mode, gear, F0, E_b, dt):
+    """`plant.held_top_speed`: the top speed (m/s) of (mode, gear) where none of the next gear
+    in M_c, M_e or M_m, or the same gear in M_m, faster than it, would run after a gear
+    switch's open time under road load F0 with ESCAPE_MARGIN times the power of holding the
+    speed left; +inf where one would, and in the open mode."""
+    G = f.gear_ratio.shape[0]
+    v_top = _top(f, mode, gear)
+    if mode == MO or not math.isfinite(v_top):
         return math.inf
-    v_top = min(tops) / float(f.gear_ratio[gear] * f.r_d)
     v_esc = max(v_top - max(F0, 0.0) * f.dt_G / f.mass, 0.1)
-    if gear < G - 1 and _capable(f, _state_caps(f, mode, gear + 1, v_esc), E_b,
-                                 max(F0, 0.0) * v_top, dt):
-        return math.inf
+    up = min(gear + 1, G - 1)
+    for m, g in ((MC, up), (ME, up), (MM, up), (MM, gear)):
+        if _top(f, m, g) > v_top * (1.0 + 1e-9) and _deliverable(
+                f, _state_caps(f, m, g, v_esc), E_b, dt) >= ESCAPE_MARGIN * max(F0, 0.0) * v_esc:
+            return math.inf
     return v_top * (1.0 - 1e-5)
 
 
