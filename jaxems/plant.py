@@ -514,8 +514,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # short of its target lies a little back on the same stretch)
     grade = _mean_grade(track, s0, ds_tgt)
     F0 = pt.road_load(vp, v0, grade)
-    # not past the top speed of a gear the truck cannot shift up out of (never slower than it
-    # runs: the cap limits acceleration only)
+    # not past the top speed of a gear the truck cannot leave for a faster state
+    # (`held_top_speed`; never slower than it runs: the cap limits acceleration only)
     v_held = jnp.maximum(held_top_speed(vp, st.mode, st.gear, F0, st.E_b, dt), v0)
     v1_tgt = jnp.minimum(v1_tgt, v_held)
     ds_tgt = jnp.minimum(0.5 * (v0 + v1_tgt) * dt, d_stop)

@@ -1571,8 +1571,8 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             i = int(np.searchsorted(tk.grid_s, s, side="right")) - 1
             grade = float(tk.grade[min(max(i, 0), tk.grade.shape[0] - 1)])
         F0 = float(road_load(f, v, grade))
-        # not past the top speed of a gear the truck cannot shift up out of (the gradient
-        # stays the one of the target's distance)
+        # not past the top speed of a gear the truck cannot leave for a faster state (the
+        # gradient stays the one of the target's distance)
         v1_tgt = min(v1_tgt, max(_held_top(f, mode, gear, F0, E_b, dt), v))
         ds_tgt = min(0.5 * (v + v1_tgt) * dt, d_stop)
         P_req = (0.5 * f.mass * (v1_tgt**2 - v**2) + F0 * ds_tgt) / dt
