@@ -188,7 +188,8 @@ Ranges = ps.Ranges
 
 
 def state_ranges(vp: VehicleParams, mode, gear, v) -> Ranges:
-    """`powersplit.Ranges` of one (mode, gear) at vehicle speed v."""
+    """`powersplit.Ranges` of (mode, gear) at vehicle speed v (indices of one shape: leaves
+    of that shape)."""
     w = pt.shaft_speeds(vp, v)[gear]
     return ps.component_ranges(vp, w, jnp.asarray(ps.ENGINE_CONNECTED)[mode],
                                jnp.asarray(ps.MOTOR_CONNECTED)[mode], gear == 0)
@@ -225,7 +226,12 @@ def deliverable(vp: VehicleParams, r: Ranges, E_b, dt):
 def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt):
     """Bool per state of `all_ranges`: it runs and delivers P_need for dt seconds (the motor's
     power is limited by what the battery holds)."""
-    return deliverable(vp, r, E_b, dt) >= P_need - 1e-6 * jnp.abs(P_need)
+    return meets(deliverable(vp, r, E_b, dt), P_need)
+
+
+def meets(give, P_need):
+    """Bool: a deliverable power `give` (W) meets the need P_need, to 1e-6 of it."""
+    return give >= P_need - 1e-6 * jnp.abs(P_need)
 
 
 def _pb_of_pbi(vp, P_bi):
@@ -403,9 +409,8 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     r_now = all_ranges(vp, v_op)
     give_now = deliverable(vp, r_now, E_b, dt)
     give_after = deliverable(vp, all_ranges(vp, v_after), E_b, dt)
-    tol = 1e-6 * jnp.abs(P_need)
-    ok_now = give_now >= P_need - tol
-    ok_after = ok_now & (give_after >= P_need - tol)
+    ok_now = meets(give_now, P_need)
+    ok_after = ok_now & meets(give_after, P_need)
     table = ps.mode_gear_split(vp, P_need, v_op, lam)
     Hf = jnp.where(table.feasible, table.H, jnp.inf).reshape(-1)
     best_after = jnp.argmin(jnp.where(ok_after, Hf, jnp.inf))
@@ -446,7 +451,8 @@ ESCAPE_MARGIN = 1.6  # what a state taking over after a switch must deliver, ove
 
 def _top_speed(vp: VehicleParams, mode, gear):
     """Top speed (m/s) of (mode, gear): where a connected engine or motor reaches its largest
-    speed; +inf in the open mode (and in the motor modes of a truck without a motor)."""
+    speed; +inf in the open mode (and in the motor modes of a truck without a motor). Indices
+    of one shape: that shape out."""
     ce = jnp.asarray(ps.ENGINE_CONNECTED)[mode]
     cm = jnp.asarray(ps.MOTOR_CONNECTED)[mode] & (vp.has_motor > 0.5)
     w_top = jnp.minimum(jnp.where(ce, vp.we_max, jnp.inf), jnp.where(cm, vp.wm_max, jnp.inf))
@@ -463,18 +469,17 @@ def held_top_speed(vp: VehicleParams, mode, gear, F0, E_b, dt):
     up at gear 1's top speed instead of running past it, being switched into a stall and
     launching again. Scalars in, () out."""
     n_g = vp.gear_ratio.shape[-1]
-    v_top = _top_speed(vp, mode, gear)
+    v_top = _top_speed(vp, mode, gear)  # +inf in the open mode: never held
     top = jnp.where(jnp.isfinite(v_top), v_top, 0.0)
     v_esc = jnp.maximum(top - jnp.maximum(F0, 0.0) * vp.dt_G / vp.mass, 0.1)
     up = jnp.minimum(gear + 1, n_g - 1)
     modes = jnp.asarray([ps.MC, ps.ME, ps.MM, ps.MM])
     gears = jnp.stack([up, up, up, gear])
-    r = jax.vmap(lambda m, g: state_ranges(vp, m, g, v_esc))(modes, gears)
-    faster = jax.vmap(lambda m, g: _top_speed(vp, m, g))(modes, gears) > top * (1.0 + 1e-9)
-    holds = deliverable(vp, r, E_b, dt) >= ESCAPE_MARGIN * jnp.maximum(F0, 0.0) * v_esc
-    escapes = jnp.any(faster & holds)
+    faster = _top_speed(vp, modes, gears) > top * (1.0 + 1e-9)
+    give = deliverable(vp, state_ranges(vp, modes, gears, v_esc), E_b, dt)
+    escapes = jnp.any(faster & (give >= ESCAPE_MARGIN * jnp.maximum(F0, 0.0) * v_esc))
     # a hair below the top, so that rounding keeps the engine within its speed range there
-    return jnp.where((mode != MO) & ~escapes, v_top * (1.0 - 1e-5), jnp.inf)
+    return jnp.where(escapes, jnp.inf, v_top * (1.0 - 1e-5))
 
 
 def protection(dt):

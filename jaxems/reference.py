@@ -1459,7 +1459,7 @@ def _held_top(f, mode, gear, F0, E_b, dt):
     speed left; +inf where one would, and in the open mode."""
     G = f.gear_ratio.shape[0]
     v_top = _top(f, mode, gear)
-    if mode == MO or not math.isfinite(v_top):
+    if not math.isfinite(v_top):  # the open mode: never held
         return math.inf
     v_esc = max(v_top - max(F0, 0.0) * f.dt_G / f.mass, 0.1)
     up = min(gear + 1, G - 1)
