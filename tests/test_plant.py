@@ -660,10 +660,6 @@ def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, 
     assert np.sum(np.abs(v[climb] - v_top) < 1e-3 * v_top) > 10  # held at the top
 
 
-def held_top_np(vp, mode, gear, F0, E_b):
-    return R._held_top(R._veh(vp), mode, gear, F0, E_b, 1.0)
-
-
 held_top = xla.jit(lambda vp, mode, gear, F0, E_b: P.held_top_speed(vp, mode, gear, F0, E_b,
                                                                     1.0))
 
@@ -678,7 +674,7 @@ def test_held_top_speed_equals_its_loop(mode, gear, grade, v, E_b, mass, hybrid)
     vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
     F0 = float(pt.road_load(vp, v, grade))
     got = float(held_top(vp, mode, gear, F0, E_b))
-    want = held_top_np(vp, mode, gear, F0, E_b)
+    want = R._held_top(R._veh(vp), mode, gear, F0, E_b, 1.0)
     assert got == pytest.approx(want, rel=1e-12) if np.isfinite(want) else np.isinf(got)
     if mode == ps.MO or (abs(grade) <= 0.01 and v <= 25.0 and gear < 11 and mode != ps.MM):
         assert np.isinf(got)  # open, or an engine mode on the flat: the next gear takes over

@@ -58,14 +58,19 @@ def test_every_run_finishes_with_the_json_fields(runs):
             assert d["level2_status"] == S.NO_LEVEL2 and S.level2_names(d["level2_status"]) is None
 
 
+def balance_closes(r, name) -> bool:
+    """A strategy's run closes its energy balance (`plant.energy_balance`: fuel + battery
+    drawn = road work + kinetic change + every loss) to rounding in float64 (1e-9)."""
+    vp = VP.conventional() if name == "conventional" else VP
+    e_in, e_out = (float(x) for x in pl.energy_balance(r.plant, vp))
+    return abs(e_in - e_out) <= 1e-9 * e_in
+
+
 def test_energy_balance_closes_for_every_strategy(runs):
-    # fuel + battery drawn = road work + kinetic change + every loss, on each strategy's own
-    # run (the plant's tests hold it under scripted controllers): to rounding in float64,
-    # where the issue asks 0.1 %
+    # on each strategy's own run (the plant's tests hold it under scripted controllers): to
+    # rounding, where the issue asks 0.1 %
     for name, r in runs.items():
-        vp = VP.conventional() if name == "conventional" else VP
-        e_in, e_out = (float(x) for x in pl.energy_balance(r.plant, vp))
-        assert abs(e_in - e_out) <= 1e-9 * e_in, (name, e_in, e_out)
+        assert balance_closes(r, name), name
 
 
 def test_trip_time_within_one_percent_of_level3(runs):
@@ -580,14 +585,12 @@ def test_a_climb_the_truck_cannot_hold_costs_no_brake_energy():
     route = short_shaped_route([(0, 25, 0, 0), (300, 25, 30, 0), (500, 25, 0, 0),
                                 (1000, 25, 0, 0)], VP)
     for name in ("conventional", "baseline"):
-        vp = VP.conventional() if name == "conventional" else VP
         r = S.simulate(route, VP, name)
         tot = r.plant.final.tot
         assert r["status"] == "ok" and float(tot.loss_slip) >= 0.0
         assert float(np.max(np.asarray(r.trace.P_brake))) <= 1e-6, name
         assert float(tot.loss_brake) >= -1e-6, (name, float(tot.loss_brake))
-        e_in, e_out = (float(x) for x in pl.energy_balance(r.plant, vp))
-        assert abs(e_in - e_out) <= 1e-9 * e_in, name
+        assert balance_closes(r, name), name
 
 
 def braking_route():
