@@ -688,9 +688,17 @@ def _engine_speed_nodes(route, pred, w_steps):
 def repredict_level3(route, vp, dt, n_steps: int, pred: l3.Prediction, mode, w) -> l3.Prediction:
     """Level 3 again, with the engine at the plan's speed w (T,) where the plan runs it (mode
     (T,) M_c or M_e, moving) and at the prediction's default speed elsewhere: its traction
-    limit assumes the engine at that speed (the iteration's omega fed back to Level 3)."""
+    limit assumes the engine at that speed (the iteration's omega fed back to Level 3).
+
+    Where that prediction stalls and pred did not, pred is returned: a node's speed holds for
+    its whole cell in Level 3, and a launch's slipping clutch (the plan's engine at idle speed,
+    its gear's speed rising through the cell) or a crawl behind a stall fed back as the engine's
+    speed up a steep climb makes Level 3 stall where the truck climbs (a stop at the foot of a
+    30 % climb: the plant climbs it in gear 1 on either prediction)."""
     w_e = jnp.where(engine_runs(pred, mode), jnp.clip(w, vp.we_min, vp.we_max), vp.w_pred)
-    return level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
+    new = level3(route, vp, dt, n_steps, _engine_speed_nodes(route, pred, w_e))
+    keep = new.feasible | ~pred.feasible
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), new, pred)
 
 
 def engine_runs(pred: l3.Prediction, mode):

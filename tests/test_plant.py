@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from jaxems import plant as P
 from jaxems import powertrain as pt
 from jaxems import reference as R
+from jaxems import strategies as S
 from jaxems import xla
 from jaxems.levels import powersplit as ps
 from jaxems.levels.velocity import predict_velocity
@@ -704,8 +705,6 @@ def test_engine_speed_nodes_interpolate_the_moving_steps_by_position():
     """The engine speed the iteration feeds back to Level 3 at each node of the route: the
     plan's speeds of the steps that move, interpolated by position (held beyond the first and
     the last; standing steps left out), by a loop over the nodes with numpy's interp."""
-    from jaxems import strategies as S
-
     T = PRED.v.shape[0]
     w = 100.0 + 50.0 * np.sin(np.arange(T) / 7.0)
     got = np.asarray(S._engine_speed_nodes(ROUTE, PRED, jnp.asarray(w)))
@@ -714,6 +713,28 @@ def test_engine_speed_nodes_interpolate_the_moving_steps_by_position():
     assert np.all(np.diff(s) > 0) and (~m & np.asarray(PRED.mask)).sum() >= 10  # stops
     want = [np.interp(x, s, ws) for x in np.asarray(PRED.profile.s)]
     np.testing.assert_allclose(got, want, rtol=1e-12)
+
+
+repredict = xla.jit(lambda vp, pred, mode, w: S.repredict_level3(STEEP, vp, 1.0, 256, pred, mode,
+                                                                 w))
+
+
+@pytest.mark.parametrize("rpm", [600.0, 1600.0])
+def test_fed_back_engine_speed_that_stalls_level3_keeps_the_prediction(rpm):
+    """The iteration's omega fed back to Level 3 (`repredict_level3`) on the launch at the foot
+    of a 30 % climb: with the engine at idle speed wherever it runs, Level 3 stalls on the climb
+    and the prediction given is returned unchanged; at 1600 rpm it climbs, and the new
+    prediction is Level 3's at those speeds (not the one given)."""
+    T = PRED_STEEP.v.shape[0]
+    mode = jnp.full(T, ps.MC, jnp.int32)
+    w = jnp.full(T, rpm * np.pi / 30.0)
+    fresh = S.level3(STEEP, VP, 1.0, 256, S._engine_speed_nodes(STEEP, PRED_STEEP, w))
+    got = repredict(VP, PRED_STEEP, mode, w)
+    assert bool(PRED_STEEP.feasible) and bool(fresh.feasible) == (rpm > 1000.0)
+    want = fresh if fresh.feasible else PRED_STEEP
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+    assert np.max(np.abs(np.asarray(fresh.profile.v) - np.asarray(PRED_STEEP.profile.v))) > 0.1
 
 
 def test_commanded_motor_power_never_fights_the_service_brakes():
