@@ -1,5 +1,5 @@
-"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py and mpc_gap.py:
-JSON structure, row arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py, mpc_gap.py and
+random_routes.py: JSON structure, row arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -207,6 +207,50 @@ def test_resolution_summary_against_plain_arithmetic(capsys):
     assert "--offsets: expected distinct kilograms >= 0" in capsys.readouterr().err
     assert res.main(["--mass", "1,2", "--strategies", "baseline"]) == 1
     assert "--mass: expected one number" in capsys.readouterr().err
+
+
+def test_random_routes_rows_are_runs_and_the_summary_their_arithmetic(capsys):
+    """random_routes: each row is `simulate` on its route (rebuilt from the row's own rows) and
+    mass; the fuel ratios are against the same route's conventional run, and the summary
+    counts what the rows say; bad input is one line naming the option."""
+    from jaxems.route import Row, route_from_rows
+
+    rr = _script("random_routes")
+    code = rr.main(["--n", "2", "--strategies", "conventional,multilevel", "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0 and "random_routes: route 1" in err
+    d = json.loads(out)
+    rows = d["rows"]
+    assert [(r["route"], r["strategy"]) for r in rows] == [
+        (0, "conventional"), (0, "multilevel"), (1, "conventional"), (1, "multilevel")]
+    for r in rows:
+        route = route_from_rows([Row(*x, line=i + 2) for i, x in enumerate(r["rows"])],
+                                ds=10.0, bucket=512)
+        assert r["rows"][0] == [0.0, 0.0, 0.0, 5.0] and r["rows"][-1][1:] == [0.0, 0.0, 2.0]
+        assert all(abs(x[2]) <= 8.0 for x in r["rows"])
+        assert 15000.0 <= r["mass_kg"] <= 40000.0
+        run = simulate(route, with_overrides(load_vehicle(), mass_kg=r["mass_kg"]),
+                       r["strategy"])
+        assert r["fuel_corrected_J"] == pytest.approx(run["fuel_corrected_J"], rel=1e-12)
+        assert r["delta_Eb_pct"] == pytest.approx(100 * run["delta_Eb_J"] / 4e6, abs=1e-9)
+        assert r["sustained"] == (abs(r["delta_Eb_pct"]) <= 1.0)
+        conv = next(c for c in rows if c["route"] == r["route"]
+                    and c["strategy"] == "conventional")
+        assert r["fuel_ratio"] == pytest.approx(r["fuel_corrected_J"]
+                                                / conv["fuel_corrected_J"])
+    ml = [r for r in rows if r["strategy"] == "multilevel"]
+    s = d["summary"]["multilevel"]
+    assert (s["runs"], s["ok"]) == (2, sum(r["status"] == "ok" for r in ml))
+    assert s["fuel_ratio_max"] == max(r["fuel_ratio"] for r in ml)
+    assert s["off_charge"] == sum(abs(r["delta_Eb_pct"]) > 1.0 for r in ml)
+    assert s["trip_beyond_target"] == sum(
+        abs(r["trip_time_s"] - r["level3_trip_time_s"]) > 0.01 * r["level3_trip_time_s"] + 1
+        for r in ml)
+    assert "multilevel" in rr.format_table(d)
+    assert rr.main(["--n", "2", "--strategies", "multilevel"]) == 1
+    assert "--strategies: conventional is the reference" in capsys.readouterr().err
+    assert rr.main(["--n", "1", "--grade-max", "40"]) == 1
+    assert "--grade-max: a gradient in % from 0 to 30" in capsys.readouterr().err
 
 
 def test_mpc_gap_level1_at_a_given_costate_is_the_mpc(capsys):

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from jaxems import plant as pl
@@ -58,12 +58,15 @@ def test_every_run_finishes_with_the_json_fields(runs):
             assert d["level2_status"] == S.NO_LEVEL2 and S.level2_names(d["level2_status"]) is None
 
 
-def balance_closes(r, name) -> bool:
+def balance_closes(r, name, vp=VP) -> bool:
     """A strategy's run closes its energy balance (`plant.energy_balance`: fuel + battery
-    drawn = road work + kinetic change + every loss) to rounding in float64 (1e-9)."""
-    vp = VP.conventional() if name == "conventional" else VP
+    drawn = road work + kinetic change + every loss) to rounding in float64 (1e-9); vp: the
+    vehicle it ran."""
+    vp = vp.conventional() if name == "conventional" else vp
     e_in, e_out = (float(x) for x in pl.energy_balance(r.plant, vp))
-    return abs(e_in - e_out) <= 1e-9 * e_in
+    # to the larger of the inputs and the road's work (a descent: no fuel, the battery back
+    # where it started, and the road's work all lost in brakes and machines)
+    return abs(e_in - e_out) <= 1e-9 * max(e_in, abs(float(r.plant.final.tot.road)))
 
 
 def test_energy_balance_closes_for_every_strategy(runs):
@@ -576,6 +579,64 @@ def short_shaped_route(rows, vp):
     assert route.grade.shape == short.grade.shape
     assert S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP)
     return route
+
+
+@st.composite
+def launch_routes(draw):
+    """(rows, mass): a launch from a stop, 1-4 sections of -8 to +8 % and 30-90 km/h over
+    300-1000 m, perhaps a 10 s stop between two of them, a stop at the end; 15-40 t."""
+    L = draw(st.floats(300.0, 1000.0))
+    n = draw(st.integers(1, 4))
+    cuts = sorted(draw(st.lists(st.integers(5, 95), min_size=n - 1, max_size=n - 1,
+                                unique=True)))
+    starts = [0.001] + [round(c * L / 100.0, 1) for c in cuts]
+    stop_at = draw(st.sampled_from([None] + list(range(1, n))))
+    rows = [(0.0, 0.0, 0.0, 5.0)]
+    for i, s0 in enumerate(starts):
+        v = float(draw(st.sampled_from([30, 50, 70, 90])))
+        g = round(draw(st.floats(-8.0, 8.0)), 1)
+        if i == stop_at:
+            rows += [(s0, 0.0, g, 10.0), (s0 + 0.001, v, g, 0.0)]
+        else:
+            rows.append((s0, v, g, 0.0))
+    rows.append((round(L, 1), 0.0, 0.0, 2.0))
+    return rows, draw(st.floats(15e3, 40e3))
+
+
+@settings(max_examples=25)
+@given(case=launch_routes())
+def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
+    """On any route (`launch_routes`), conventional, baseline and multilevel reach its end with
+    every figure finite, the battery within its limits (the conventional truck's untouched),
+    the energy balance closed, within 10 % + 2 s of their Level 3 trip time, and multilevel
+    burns less corrected fuel than the conventional truck. Over 60 such random routes
+    (2026-11-27) every run finished, multilevel burnt 0.69-0.98 of the conventional fuel and
+    the A-ECMS up to 1.02; trip times were -2.2 to +6.6 % (whole seconds of trips of 40-190
+    s). Charge is not asserted: 25 of multilevel's 60 runs ended more than 1 % of the battery
+    off (README, "Beyond the bundled routes")."""
+    rows, mass = case
+    vp = VP.replace(mass=mass)
+    from jaxems.route import Row, route_from_rows
+
+    probe = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], bucket=512)
+    assume(S.steps_for_batch(probe, vp) == S.steps_for_batch(load_route("short_track"), VP))
+    route = short_shaped_route(rows, vp)
+    fuel = {}
+    for name in ("conventional", "baseline", "multilevel"):
+        r = S.simulate(route, vp, name)
+        d = r.as_dict()
+        assert d["status"] == "ok", (name, d["status"])
+        for k, x in d.items():
+            if k not in ("route", "strategy", "status"):
+                assert np.isfinite(x), (name, k)
+        assert 0.0 <= d["Eb_min_J"] <= d["Eb_max_J"] <= float(vp.E_b_max), name
+        assert balance_closes(r, name, vp), name
+        t3 = float(r.prediction.trip_time)
+        assert abs(d["trip_time_s"] - t3) <= 0.1 * t3 + 2.0, (name, d["trip_time_s"], t3)
+        fuel[name] = corrected(r)
+        if name == "conventional":
+            assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"]
+    assert fuel["multilevel"] < fuel["conventional"]
 
 
 def test_a_climb_the_truck_cannot_hold_costs_no_brake_energy():
