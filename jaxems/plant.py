@@ -215,18 +215,30 @@ def capacity(r: Ranges):
     return jnp.where(r.ok, r.e_hi + r.m_lim, -jnp.inf)
 
 
-def deliverable(vp: VehicleParams, r: Ranges, E_b, dt):
+def deliverable(vp: VehicleParams, r: Ranges, E_b, dt, pb_plan=None):
     """Largest power (W) each state of `all_ranges` delivers for dt seconds, its motor limited
-    by what the battery holds; -inf where it cannot run."""
+    by what the battery holds and, where the engine is connected and a plan holds the battery
+    (pb_plan: () W, +inf where none does), to the motor power of the plan's battery power (at
+    least 0, `plan_motor`); -inf where it cannot run."""
     pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
     m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
+    if pb_plan is not None:
+        m_hi = jnp.where(r.ce & jnp.isfinite(pb_plan),
+                         jnp.minimum(m_hi, plan_motor(vp, r, pb_plan)), m_hi)
     return jnp.where(r.ok, r.e_hi + m_hi, -jnp.inf)
 
 
-def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt):
+def plan_motor(vp: VehicleParams, r: Ranges, pb_plan):
+    """The motor power (W) a plan's battery power pb_plan allows in states r: its motor output,
+    within [0, the motor's limit] (where pb_plan is not finite, 0)."""
+    return jnp.clip(ps.pm_of_pb(vp, r, jnp.where(jnp.isfinite(pb_plan), pb_plan, 0.0)), 0.0,
+                    r.m_lim)
+
+
+def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt, pb_plan=None):
     """Bool per state of `all_ranges`: it runs and delivers P_need for dt seconds (the motor's
-    power is limited by what the battery holds)."""
-    return meets(deliverable(vp, r, E_b, dt), P_need)
+    power is limited by what the battery holds, and by pb_plan: `deliverable`)."""
+    return meets(deliverable(vp, r, E_b, dt, pb_plan), P_need)
 
 
 def meets(give, P_need):
@@ -393,7 +405,7 @@ def _motion_short(vp, v0, F0, P_wheel, dt):
 
 
 def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
-                    at_rest, dt):
+                    at_rest, pb_plan, dt):
     """Level 0 protection: the state (index mode * n_gears + gear) the driveline takes.
 
     The requested state s_req where it runs at v_op and delivers P_need (a switch opens the
@@ -405,10 +417,11 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     capable. Every state is evaluated; the plant calls it only where the requested state does
     not serve (`shard.shortcut`). Scalars in, int32 () out."""
     n_g = vp.gear_ratio.shape[-1]
-    keep, _ = requested_serves(vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt)
+    keep, _ = requested_serves(vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest,
+                               pb_plan, dt)
     r_now = all_ranges(vp, v_op)
-    give_now = deliverable(vp, r_now, E_b, dt)
-    give_after = deliverable(vp, all_ranges(vp, v_after), E_b, dt)
+    give_now = deliverable(vp, r_now, E_b, dt, pb_plan)
+    give_after = deliverable(vp, all_ranges(vp, v_after), E_b, dt, pb_plan)
     ok_now = meets(give_now, P_need)
     ok_after = ok_now & meets(give_after, P_need)
     table = ps.mode_gear_split(vp, P_need, v_op, lam)
@@ -432,14 +445,15 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
 
 
 def requested_serves(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s_cur,
-                     at_rest, dt):
+                     at_rest, pb_plan, dt):
     """(known, s_req): whether `protected_state` keeps the requested state, from that state's
     ranges alone (at rest, or it serves: at v_op, and at v_after where it is a switch). Where
     known is False the full evaluation decides (`shard.shortcut`)."""
     n_g = vp.gear_ratio.shape[-1]
 
     def serves(v):  # the requested state runs at speed v and delivers P_need
-        return capable(vp, state_ranges(vp, s_req // n_g, s_req % n_g, v), E_b, P_need, dt)
+        return capable(vp, state_ranges(vp, s_req // n_g, s_req % n_g, v), E_b, P_need, dt,
+                       pb_plan)
 
     ok_req = serves(v_op)
     req_ok = jnp.where(s_req == s_cur, ok_req, ok_req & serves(v_after))
@@ -553,7 +567,13 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # lost meanwhile
     dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
     v_after = jnp.maximum(v_op - dv_sw, 0.1)
-    s_new = protection(dt)(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest)
+    # a plan that holds the battery (below its energy, `Command.catch_up`) allows the motor
+    # its planned power in the engine's states, not the battery's: a state serves with that
+    planned = jnp.isfinite(cmd.P_b)
+    limit_b = planned & ~jnp.asarray(cmd.catch_up, bool)
+    pb_plan = jnp.where(limit_b, cmd.P_b, jnp.inf).astype(v0.dtype)
+    s_new = protection(dt)(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest,
+                           pb_plan)
     req_mode = (s_new // n_g).astype(st.mode.dtype)
     req_gear = (s_new % n_g).astype(st.gear.dtype)
 
@@ -580,10 +600,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # the engine disconnected (M_m) the battery is all there is, and it recovers the reference
     # (else the truck would hold the speed it has, behind the reference, until the plan's
     # next engine state)
-    planned = jnp.isfinite(cmd.P_b)
-    pm_cmd = ps.pm_of_pb(vp, r, jnp.where(planned, cmd.P_b, 0.0))
-    limit = planned & ~jnp.asarray(cmd.catch_up, bool) & r.ce
-    cap_plan = traction * (r.e_hi + jnp.clip(pm_cmd, 0.0, r.m_lim))  # used only where limit
+    limit = limit_b & r.ce
+    cap_plan = traction * (r.e_hi + plan_motor(vp, r, cmd.P_b))  # used only where limit
     P_dem = jnp.where(limit, jnp.minimum(P_dem, jnp.maximum(P_need, cap_plan)), P_dem)
     opt = ps.split_state(vp, P_dem, v_op, lam, mode, gear)
     P_b = jnp.where(planned, cmd.P_b, opt.P_b)

@@ -1373,16 +1373,24 @@ def _pb_of_pbi(f, P_bi):
     return (math.sqrt(max(1.0 + 4.0 * f.beta * P_bi, 0.0)) - 1.0) / (2.0 * f.beta)
 
 
-def _deliverable(f, c, E_b, dt):
-    """The most the state delivers for dt (its motor limited by the battery's energy); -inf
-    where it cannot run."""
+def _deliverable(f, c, E_b, dt, pb_plan=math.inf):
+    """The most the state delivers for dt (its motor limited by the battery's energy and, with
+    the engine connected, by a plan's battery power pb_plan where finite: its motor output,
+    at least 0); -inf where it cannot run."""
     m_hi = min(c.m_lim, c.pm0 + f.eta_m * _pb_of_pbi(f, max(E_b, 0.0) / dt))
+    if c.ce and math.isfinite(pb_plan):
+        m_hi = min(m_hi, _plan_motor(f, c, pb_plan))
     return c.e_hi + m_hi if c.ok else -math.inf
 
 
-def _capable(f, c, E_b, P_need, dt):
-    """The state runs and delivers P_need for dt (its motor limited by the battery's energy)."""
-    return _deliverable(f, c, E_b, dt) >= P_need - 1e-6 * abs(P_need)
+def _plan_motor(f, c, pb_plan):
+    """The motor power a plan's battery power allows: its output, within [0, the limit]."""
+    return min(max(_pm_of_pb_state(f, c, pb_plan), 0.0), c.m_lim)
+
+
+def _capable(f, c, E_b, P_need, dt, pb_plan=math.inf):
+    """The state runs and delivers P_need for dt (`_deliverable`)."""
+    return _deliverable(f, c, E_b, dt, pb_plan) >= P_need - 1e-6 * abs(P_need)
 
 
 def ref_sync_energy(vp: VehicleParams, mode0, gear0, mode1, gear1, v) -> float:
@@ -1406,13 +1414,15 @@ def _sync(f, mode0, gear0, mode1, gear1, v):
     return out
 
 
-def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
+def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt,
+             pb_plan=math.inf):
     """Level 0 (`plant.protected_state`), evaluating every state: the requested state where it
     serves (at v_op, and at v_after when switched into) or at rest; else the current one where
     it serves; else the requested mode's gear of least H that serves after the switch; else
     the state of least H that serves after; else the current one where it runs (not open)
     and delivers at least what any other could after the switch; else the state of least H
-    that serves now; else the most capable."""
+    that serves now; else the most capable. A state serves with its motor limited by the
+    battery and, with the engine connected, by a plan's battery power pb_plan where finite."""
     G = f.gear_ratio.shape[0]
     S = N_MODES * G
 
@@ -1420,7 +1430,7 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
         return _state_caps(f, s // G, s % G, v)
 
     def serves(s, v):
-        return _capable(f, caps(s, v), E_b, P_need, dt)
+        return _capable(f, caps(s, v), E_b, P_need, dt, pb_plan)
 
     if at_rest or (serves(s_req, v_op) and (s_req == s_cur or serves(s_req, v_after))):
         return s_req
@@ -1435,8 +1445,9 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt):
     if any(ok_after):
         return int(np.argmin([H[s] if ok_after[s] else np.inf for s in range(S)]))
     # no switch serves after its open time: stay where the current state delivers as much
-    if s_cur // G != MO and _deliverable(f, caps(s_cur, v_op), E_b, dt) >= max(
-            _deliverable(f, caps(s, v_after), E_b, dt) for s in range(S) if s != s_cur):
+    if s_cur // G != MO and _deliverable(f, caps(s_cur, v_op), E_b, dt, pb_plan) >= max(
+            _deliverable(f, caps(s, v_after), E_b, dt, pb_plan) for s in range(S)
+            if s != s_cur):
         return s_cur
     if any(ok_now):
         return int(np.argmin([H[s] if ok_now[s] else np.inf for s in range(S)]))
@@ -1588,7 +1599,11 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         P_follow = max(F0 + max(f.mass * a_ref, 0.0), 0.0) * v
         P_need = min(P_req, P_follow) if v > 0 else P_req
         v_after = max(v_op - max(F0, 0.0) * t_open / f.mass, 0.1)
-        s_new = _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt)
+        planned = bool(np.isfinite(c_pb[k]))
+        # a plan holding the battery allows the motor its planned power in the engine's states
+        pb_plan = float(c_pb[k]) if planned and not bool(c_up[k]) else math.inf
+        s_new = _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt,
+                         pb_plan)
         mode1, gear1 = divmod(s_new, G)
         gear1 = gear if mode1 == MO else gear1  # the open mode keeps the gear
         mode_sw = mode1 != mode and not done
@@ -1603,11 +1618,9 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         c = _state_caps(f, mode1, gear1, v_op)
         traction = (1.0 - f_open) * c.ok
         P_dem = min(P_req, traction * (c.e_hi + c.m_lim))
-        planned = bool(np.isfinite(c_pb[k]))
         if planned and not bool(c_up[k]) and c.ce:  # recover a switch's lost speed on the
             # engine only (with the engine disconnected the battery recovers it)
-            pm_cmd = _pm_of_pb_state(f, c, float(c_pb[k]))
-            cap_plan = traction * (c.e_hi + min(max(pm_cmd, 0.0), c.m_lim))
+            cap_plan = traction * (c.e_hi + _plan_motor(f, c, pb_plan))
             P_dem = min(P_dem, max(P_need, cap_plan))
         if planned:
             P_b = float(c_pb[k])

@@ -438,26 +438,30 @@ _protect_full = xla.jit(functools.partial(P.protected_state, dt=1.0))
 _protect = P.protection(1.0)  # as the plant's step calls it
 _protect_one = xla.jit(_protect)
 _protect_vmap = xla.jit(jax.vmap(_protect, in_axes=(None, 0, None, None, None, None, 0, None,
-                                                     None)))
+                                                     None, None)))
 _S = ps.N_MODES * VP.gear_ratio.shape[0]
+# a plan's battery power holding the motor in the engine's states (`plant.deliverable`), or none
+PB_PLAN = st.one_of(st.just(float("inf")), st.floats(-150e3, 150e3, allow_subnormal=False))
 
 
 @settings(max_examples=60, deadline=None)
 @given(v=st.floats(0.0, 30.0), dv=st.floats(0.0, 3.0), P_need=st.floats(-50e3, 400e3),
        E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0),
-       s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), at_rest=st.booleans())
+       s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), at_rest=st.booleans(),
+       pb_plan=PB_PLAN)
 def test_protection_with_its_shortcut_is_the_full_one(v, dv, P_need, E_frac, lam, s_req, s_cur,
-                                                      at_rest):
+                                                      at_rest, pb_plan):
     """Level 0 decided from the requested state alone where it serves, and by every state
     where it does not, gives the state of the full evaluation: one configuration, and under
     vmap (a batch where some requests serve and some do not, or all do)."""
-    args = (VP, E_frac * VP.E_b_max, P_need, v, max(v - dv, 0.1), lam, s_req, s_cur, at_rest)
+    args = (VP, E_frac * VP.E_b_max, P_need, v, max(v - dv, 0.1), lam, s_req, s_cur, at_rest,
+            pb_plan)
     want = int(_protect_full(*args))
     known, s = P.requested_serves(*args, dt=1.0)
     # the check from the requested state alone is the one from every state's table
     E_b, v_after = args[1], args[4]
-    ok_now = P.capable(VP, P.all_ranges(VP, v), E_b, P_need, 1.0)
-    ok_after = ok_now & P.capable(VP, P.all_ranges(VP, v_after), E_b, P_need, 1.0)
+    ok_now = P.capable(VP, P.all_ranges(VP, v), E_b, P_need, 1.0, pb_plan)
+    ok_after = ok_now & P.capable(VP, P.all_ranges(VP, v_after), E_b, P_need, 1.0, pb_plan)
     ok = bool(ok_now[s_req]) if s_req == s_cur else bool(ok_after[s_req])
     assert bool(known) == (ok or at_rest) and int(s) == s_req
     if known:
@@ -471,16 +475,18 @@ def test_protection_with_its_shortcut_is_the_full_one(v, dv, P_need, E_frac, lam
 
 
 def assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur,
-                                     hybrid):
+                                     hybrid, pb_plan=float("inf")):
     """`plant.protected_state` equals `reference._protect` for a truck needing its road
     load's power at v on this grade plus `extra` (W), a switch costing the speed the road
-    load takes in one open second; returns the state."""
+    load takes in one open second, a plan's battery power pb_plan (W, inf: none); returns the
+    state."""
     vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
     F0 = float(pt.road_load(vp, v, grade))
     v_after = max(v - max(F0, 0.0) / mass, 0.1)
     P_need = max(F0, 0.0) * v + extra
-    args = (vp, E_frac * float(vp.E_b_max), P_need, v, v_after, lam, s_req, s_cur, False)
-    want = R._protect(R._veh(vp), vp, *args[1:], 1.0)
+    args = (vp, E_frac * float(vp.E_b_max), P_need, v, v_after, lam, s_req, s_cur, False,
+            pb_plan)
+    want = R._protect(R._veh(vp), vp, *args[1:9], 1.0, pb_plan)
     assert int(_protect_full(*args)) == want
     return want
 
@@ -489,11 +495,15 @@ def assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req,
 @given(v=st.floats(0.0, 30.0), grade=st.floats(-0.3, 0.3),
        extra=st.floats(-50e3, 400e3, allow_subnormal=False),  # XLA's CPU flushes them to 0
        E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0), mass=st.floats(12e3, 40e3),
-       s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), hybrid=st.booleans())
-def test_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid):
+       s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), hybrid=st.booleans(),
+       pb_plan=PB_PLAN)
+def test_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid,
+                                    pb_plan):
     """Level 0 (`plant.protected_state`) against the reference's loop over every state
-    (`reference._protect`), on any gradient up to +-30 %."""
-    assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid)
+    (`reference._protect`), on any gradient up to +-30 %, with and without a plan holding the
+    battery."""
+    assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid,
+                                      pb_plan)
 
 
 @settings(max_examples=60, deadline=None)
@@ -735,6 +745,30 @@ def test_fed_back_engine_speed_that_stalls_level3_keeps_the_prediction(rpm):
     for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
     assert np.max(np.abs(np.asarray(fresh.profile.v) - np.asarray(PRED_STEEP.profile.v))) > 0.1
+
+
+@pytest.mark.parametrize("gear", [10, 11])
+def test_a_plan_holding_the_battery_downshifts_where_its_engine_falls_short(gear):
+    """A plan below its battery energy (catch_up False) holds the motor to its battery power
+    in the engine's states, and Level 0 counts only that: at 40 t on ROUTE's 5 % climb, a
+    script asking M_c in a gear whose engine cannot hold the speed, with no battery power,
+    gets a lower gear that can, and the battery gives at most the motor's drag at zero output
+    (about 1 kW). Level 0 that counted the whole motor kept the gear and drew 23-43 kW."""
+    vp = VP.replace(mass=40000.0)
+    pred = predict_velocity(ROUTE, vp, n_steps=256)
+    n = N_PLANT
+    cmds = (np.full(n, ps.MC, np.int32), np.full(n, gear, np.int32), np.full(n, -2.2),
+            np.zeros(n), np.zeros(n, bool))
+    res = run_script(vp, tuple(jnp.asarray(a) for a in cmds), P.make_track(ROUTE, pred))
+    tr = res.trace
+    s, g = np.asarray(tr.s), np.asarray(tr.gear)
+    climb = (s > 320.0) & (s < 480.0)
+    assert bool(res.final.done) and np.all(g[climb] < gear)
+    # up the climb, at most the motor's drag in the step's gear at the run's top speed
+    w = np.asarray(vp.gear_ratio)[g[climb]] * float(vp.r_d) * float(np.max(np.asarray(tr.v)))
+    drag = -np.asarray(pt.motor_friction(vp, w)) / float(vp.eta_m)
+    assert np.all(np.asarray(tr.P_b)[climb] <= drag) and np.max(drag) < 1.5e3
+    assert rel_balance(res, vp) < BALANCE_RTOL
 
 
 def test_commanded_motor_power_never_fights_the_service_brakes():
