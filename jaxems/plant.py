@@ -113,7 +113,8 @@ class Command(NamedTuple):
     finite P_b, whether the battery may also cover the power of recovering the reference speed
     after a switch (beyond the reference's own acceleration); if not, only the engine's headroom
     and the commanded motor power recover it, so the battery follows the plan's (in a state
-    with the engine disconnected, M_m, the battery recovers it regardless).
+    with the engine disconnected, M_m, the battery recovers it regardless), and Level 0 counts
+    on no more motor power than the commanded in the engine's states (`protected_state`).
     """
 
     mode: Any
@@ -414,8 +415,10 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     the requested mode in the gear of least H (at lam) that serves, else the state of least H
     that serves, else s_cur where it runs (not open) and delivers at least what any other
     state could at v_after, else the state of least H that serves at v_op, else the most
-    capable. Every state is evaluated; the plant calls it only where the requested state does
-    not serve (`shard.shortcut`). Scalars in, int32 () out."""
+    capable. A state serves with its motor limited by the battery's energy and, in the
+    engine's states, by pb_plan (W), the battery power of a plan that holds the battery (+inf
+    where none does, `deliverable`). Every state is evaluated; the plant calls it only where
+    the requested state does not serve (`shard.shortcut`). Scalars in, int32 () out."""
     n_g = vp.gear_ratio.shape[-1]
     keep, _ = requested_serves(vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest,
                                pb_plan, dt)
