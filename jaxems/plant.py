@@ -113,8 +113,9 @@ class Command(NamedTuple):
     finite P_b, whether the battery may also cover the power of recovering the reference speed
     after a switch (beyond the reference's own acceleration); if not, only the engine's headroom
     and the commanded motor power recover it, so the battery follows the plan's (in a state
-    with the engine disconnected, M_m, the battery recovers it regardless), and Level 0 counts
-    on no more motor power than the commanded in the engine's states (`protected_state`).
+    with the engine disconnected, M_m, the battery recovers it regardless), and, where
+    level0_plan, Level 0 counts on no more motor power than the commanded in the engine's
+    states (`protected_state`; else on what the battery holds).
     """
 
     mode: Any
@@ -122,6 +123,7 @@ class Command(NamedTuple):
     lam: Any
     P_b: Any
     catch_up: Any = True
+    level0_plan: Any = True
 
 
 # A controller: (ctrl_params, ctrl_state, vehicle, obs) -> (ctrl_state, Command). Pure; the
@@ -574,7 +576,8 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # its planned power in the engine's states, not the battery's: a state serves with that
     planned = jnp.isfinite(cmd.P_b)
     limit_b = planned & ~jnp.asarray(cmd.catch_up, bool)
-    pb_plan = jnp.where(limit_b, cmd.P_b, jnp.inf).astype(v0.dtype)
+    pb_plan = jnp.where(limit_b & jnp.asarray(cmd.level0_plan, bool), cmd.P_b,
+                        jnp.inf).astype(v0.dtype)
     s_new = protection(dt)(vp, st.E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest,
                            pb_plan)
     req_mode = (s_new // n_g).astype(st.mode.dtype)

@@ -1527,8 +1527,9 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     """The plant (`plant.run_plant`) as a loop over its steps, under a scripted controller.
 
     track: `ref_track`'s (or the plant's `Track`, its arrays read with NumPy); commands:
-    (mode, gear, lam, P_b, catch_up), each (n_steps,), the controller's command at each step
-    (P_b nan: the optimal split at lam, found by the refined brute force of `split_table`).
+    (mode, gear, lam, P_b, catch_up, level0_plan), each (n_steps,), the controller's command at
+    each step (P_b nan: the optimal split at lam, found by the refined brute force of
+    `split_table`; level0_plan: `plant.Command`'s).
     The truck starts at the reference's first position and speed, E_b = soc0 E_b_max, in
     (mode0, gear0).
     Returns (steps: list of `RefPlantStep`, totals: dict of the run's energies (J), switch
@@ -1537,7 +1538,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     tk = SimpleNamespace(**{k: np.asarray(getattr(track, k), float) for k in (
         "ref_s", "ref_v", "grid_s", "grade", "rise", "stop_s", "stop_t", "length", "final_s")})
     length, final_s = float(tk.length), float(tk.final_s)
-    c_mode, c_gear, c_lam, c_pb, c_up = (np.asarray(a) for a in commands)
+    c_mode, c_gear, c_lam, c_pb, c_up, c_l0 = (np.asarray(a) for a in commands)
     G = f.gear_ratio.shape[0]
     T = tk.ref_s.shape[0] - 1
     t_open = max(f.dt_M, f.dt_G)
@@ -1601,7 +1602,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         v_after = max(v_op - max(F0, 0.0) * t_open / f.mass, 0.1)
         planned = bool(np.isfinite(c_pb[k]))
         # a plan holding the battery allows the motor its planned power in the engine's states
-        pb_plan = float(c_pb[k]) if planned and not bool(c_up[k]) else math.inf
+        pb_plan = float(c_pb[k]) if planned and not c_up[k] and c_l0[k] else math.inf
         s_new = _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt,
                          pb_plan)
         mode1, gear1 = divmod(s_new, G)
@@ -1620,7 +1621,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         P_dem = min(P_req, traction * (c.e_hi + c.m_lim))
         if planned and not bool(c_up[k]) and c.ce:  # recover a switch's lost speed on the
             # engine only (with the engine disconnected the battery recovers it)
-            cap_plan = traction * (c.e_hi + _plan_motor(f, c, pb_plan))
+            cap_plan = traction * (c.e_hi + _plan_motor(f, c, float(c_pb[k])))
             P_dem = min(P_dem, max(P_need, cap_plan))
         if planned:
             P_b = float(c_pb[k])

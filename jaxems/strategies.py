@@ -116,7 +116,11 @@ class Options(NamedTuple):
     (its final braking), the plant's battery stores no more than the trip started with and the
     service brakes take the rest (`plant.Track.final_s`; False: it stores all it can);
     mpc_end_reserve: share of the battery the MPC aims its end above the start where that cap
-    applies (`mpc_end_target`).
+    applies (`mpc_end_target`); level0_plan_power: below a plan's battery energy, Level 0 counts
+    only the plan's battery power in the engine's states when it asks whether a state serves
+    (`plant.Command.level0_plan`: where the plan's gear cannot hold the speed on its engine,
+    the driveline shifts down; False: it counts what the battery holds, as before 2026-11-27,
+    and holds the speed on the battery).
     """
 
     n_iter: int = 2
@@ -144,6 +148,7 @@ class Options(NamedTuple):
     mpc_pieces: int = 8
     end_cap: bool = True
     mpc_end_reserve: float = 0.03
+    level0_plan_power: bool = True
 
 
 class Metrics(NamedTuple):
@@ -210,6 +215,7 @@ class Plan(NamedTuple):
     P_b: Any
     E_ref: Any
     k_E: Any
+    level0: Any = True
 
 
 def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
@@ -227,7 +233,8 @@ def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):
     j1 = jnp.minimum(obs.j + 1, T - 1)
     P_b = plan.P_b[obs.j] + plan.k_E * (obs.E_b - plan.E_ref[obs.j])
     return cstate, pl.Command(mode=plan.mode[j1], gear=plan.gear[j1], lam=plan.lam[obs.j],
-                              P_b=P_b, catch_up=obs.E_b >= plan.E_ref[obs.j])
+                              P_b=P_b, catch_up=obs.E_b >= plan.E_ref[obs.j],
+                              level0_plan=plan.level0)
 
 
 def plan_energy(vp, pred, mode, gear, dt):
@@ -408,7 +415,8 @@ def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) ->
     P_b = trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt)
     return Plan(mode=mode, gear=gear, lam=lam, P_b=P_b,
                 E_ref=battery_path(vp, steps_energy(vp, pred, mode, gear, P_b, dt), *whole)[0],
-                k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype))
+                k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype),
+                level0=jnp.asarray(opts.level0_plan_power))
 
 
 def guard_lambda(c2: l2.CostateResult, tol, gap: float = 0.05):
@@ -1634,7 +1642,7 @@ def make_options(base: Options | Mapping | None = None, /, **fields) -> Options:
 # real numbers, finite, with their range ((lo, hi, lo_open, hi_open); None: unbounded)
 _INT_OPTIONS = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
                 "l2_pieces": 1, "mpc_pieces": 1, "dp_attempts": 1}
-_BOOL_OPTIONS = ("sustain", "guard_sides", "end_cap", "same_open_time")
+_BOOL_OPTIONS = ("sustain", "guard_sides", "end_cap", "same_open_time", "level0_plan_power")
 _REAL_OPTIONS = {
     "lam0": (None, 0.0, False, True), "kp": (0.0, None, False, False),
     "soc_ref": (0.0, 1.0, False, False), "ke_share": (0.0, 1.0, False, False),
