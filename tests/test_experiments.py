@@ -33,16 +33,22 @@ def _script(name):
 table7, table8, traces = _script("table7"), _script("table8"), _script("traces")
 
 
+def main_json(script, args, capsys):
+    """(the JSON object, stderr) of script.main(args + ["--json"]), which exits 0: stdout
+    holds exactly one JSON object, progress goes to stderr."""
+    code = script.main([*args, "--json"])
+    out, err = capsys.readouterr()
+    assert code == 0, err
+    return json.loads(out), err
+
+
 @pytest.fixture(scope="module")
 def t7():
     return table7.run_table("short_track", 25000.0, ["conventional", "multilevel"], n_iter=2)
 
 
 def test_table7_json_is_one_object(capsys):
-    code = table7.main(["--strategies", "conventional,multilevel", "--json"])
-    out, err = capsys.readouterr()
-    assert code == 0
-    d = json.loads(out)  # stdout holds exactly one JSON object; progress went to stderr
+    d, err = main_json(table7, ["--strategies", "conventional,multilevel"], capsys)
     assert "table7: conventional" in err and "table7: multilevel" in err
     labels = [r["label"] for r in d["rows"]]
     assert labels == ["non-hybrid", "iteration 0", "iteration 1"]
@@ -102,11 +108,9 @@ def test_traces_main_writes_figure(tmp_path, capsys):
 
 
 def test_table8_json_structure(capsys):
-    code = table8.main(["--routes", "short_track", "--strategies", "conventional,baseline",
-                        "--json"])
-    out, err = capsys.readouterr()
-    assert code == 0 and "table8: short_track" in err
-    d = json.loads(out)
+    d, err = main_json(table8, ["--routes", "short_track", "--strategies",
+                                "conventional,baseline"], capsys)
+    assert "table8: short_track" in err
     assert d["mass_kg"] == 20000.0
     rows = d["rows"]
     assert [(r["route"], r["strategy"]) for r in rows] == [
@@ -154,10 +158,8 @@ def test_charge_grid_json_and_the_baselines_balance(capsys):
     A-ECMS, whose reference is the trip's start, ends the same energy from it at 30 and 50 %
     (the 25 t baseline shares its compilation with the tests above)."""
     grid = _script("charge_grid")
-    code = grid.main(["--strategies", "baseline", "--socs", "0.3,0.5", "--json"])
-    out, err = capsys.readouterr()
-    assert code == 0 and "charge_grid: baseline" in err
-    d = json.loads(out)
+    d, err = main_json(grid, ["--strategies", "baseline", "--socs", "0.3,0.5"], capsys)
+    assert "charge_grid: baseline" in err
     rows = d["rows"]
     assert [(r["strategy"], r["soc0"]) for r in rows] == [("baseline", 0.3), ("baseline", 0.5)]
     size = float(load_vehicle().E_b_max)
@@ -193,10 +195,7 @@ def test_resolution_summary_against_plain_arithmetic(capsys):
                                [0.0, 1.0, -10.0])
     assert res.summarise(rows[:3], masses)[1] == {}  # one strategy: no gap
 
-    code = res.main(["--strategies", "baseline", "--offsets", "0,50", "--json"])
-    out, err = capsys.readouterr()
-    assert code == 0
-    d = json.loads(out)
+    d, _ = main_json(res, ["--strategies", "baseline", "--offsets", "0,50"], capsys)
     assert d["masses"] == [25000.0, 25050.0] and d["gaps"] == {}
     runs = [simulate("short_track", with_overrides(load_vehicle(), mass_kg=m), "baseline")
             for m in d["masses"]]
@@ -216,10 +215,8 @@ def test_random_routes_rows_are_runs_and_the_summary_their_arithmetic(capsys):
     from jaxems.route import Row, route_from_rows
 
     rr = _script("random_routes")
-    code = rr.main(["--n", "2", "--strategies", "conventional,multilevel", "--json"])
-    out, err = capsys.readouterr()
-    assert code == 0 and "random_routes: route 1" in err
-    d = json.loads(out)
+    d, err = main_json(rr, ["--n", "2", "--strategies", "conventional,multilevel"], capsys)
+    assert "random_routes: route 1" in err
     rows = d["rows"]
     assert [(r["route"], r["strategy"]) for r in rows] == [
         (0, "conventional"), (0, "multilevel"), (1, "conventional"), (1, "multilevel")]
