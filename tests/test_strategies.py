@@ -608,12 +608,15 @@ def launch_routes(draw):
 def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
     """On any route (`launch_routes`), conventional, baseline and multilevel reach its end with
     every figure finite, the battery within its limits (the conventional truck's untouched),
-    the energy balance closed, within 10 % + 2 s of their Level 3 trip time, and multilevel
-    burns less corrected fuel than the conventional truck. Over 60 such random routes
-    (2026-11-27) every run finished, multilevel burnt 0.69-0.98 of the conventional fuel and
-    the A-ECMS up to 1.02; trip times were -2.2 to +6.6 % (whole seconds of trips of 40-190
-    s). Charge is not asserted: 25 of multilevel's 60 runs ended more than 1 % of the battery
-    off (README, "Beyond the bundled routes")."""
+    the energy balance closed, and within 10 % + 2 s of their Level 3 trip time. Over 60 such
+    random routes (`experiments/random_routes.py`, 2026-11-27) trip times were -3.6 to +5.5 %
+    (whole seconds of trips of 50-145 s). Fuel is not asserted: there multilevel burnt at most
+    0.966 of the conventional truck's corrected fuel and the A-ECMS 0.998, but on a route that
+    only climbs (300 m of 8 % at 15 t) the hybrids burn more than the conventional truck
+    (multilevel 10.62, dp-bound 10.68, conventional 9.74 MJ): what the battery gives on the
+    climb the engine must put back on it, through the motor's and the battery's losses. Nor
+    is charge: 16 of multilevel's 60 runs ended more than 1 % of the battery off (README,
+    "Beyond the bundled routes")."""
     rows, mass = case
     vp = VP.replace(mass=mass)
     from jaxems.route import Row, route_from_rows
@@ -621,7 +624,6 @@ def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
     probe = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], bucket=512)
     assume(S.steps_for_batch(probe, vp) == S.steps_for_batch(load_route("short_track"), VP))
     route = short_shaped_route(rows, vp)
-    fuel = {}
     for name in ("conventional", "baseline", "multilevel"):
         r = S.simulate(route, vp, name)
         d = r.as_dict()
@@ -633,10 +635,8 @@ def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
         assert balance_closes(r, name, vp), name
         t3 = float(r.prediction.trip_time)
         assert abs(d["trip_time_s"] - t3) <= 0.1 * t3 + 2.0, (name, d["trip_time_s"], t3)
-        fuel[name] = corrected(r)
         if name == "conventional":
             assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"]
-    assert fuel["multilevel"] < fuel["conventional"]
 
 
 def test_a_climb_the_truck_cannot_hold_costs_no_brake_energy():
