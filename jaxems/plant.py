@@ -218,16 +218,15 @@ def capacity(r: Ranges):
     return jnp.where(r.ok, r.e_hi + r.m_lim, -jnp.inf)
 
 
-def deliverable(vp: VehicleParams, r: Ranges, E_b, dt, pb_plan=None):
+def deliverable(vp: VehicleParams, r: Ranges, E_b, dt, pb_plan=jnp.inf):
     """Largest power (W) each state of `all_ranges` delivers for dt seconds, its motor limited
     by what the battery holds and, where the engine is connected and a plan holds the battery
     (pb_plan: () W, +inf where none does), to the motor power of the plan's battery power (at
     least 0, `plan_motor`); -inf where it cannot run."""
     pb_batt = _pb_of_pbi(vp, jnp.maximum(E_b, 0.0) / dt)
     m_hi = jnp.minimum(r.m_lim, r.pm0 + vp.eta_m * pb_batt)
-    if pb_plan is not None:
-        m_hi = jnp.where(r.ce & jnp.isfinite(pb_plan),
-                         jnp.minimum(m_hi, plan_motor(vp, r, pb_plan)), m_hi)
+    m_hi = jnp.where(r.ce & jnp.isfinite(pb_plan), jnp.minimum(m_hi, plan_motor(vp, r, pb_plan)),
+                     m_hi)
     return jnp.where(r.ok, r.e_hi + m_hi, -jnp.inf)
 
 
@@ -238,7 +237,7 @@ def plan_motor(vp: VehicleParams, r: Ranges, pb_plan):
                     r.m_lim)
 
 
-def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt, pb_plan=None):
+def capable(vp: VehicleParams, r: Ranges, E_b, P_need, dt, pb_plan=jnp.inf):
     """Bool per state of `all_ranges`: it runs and delivers P_need for dt seconds (the motor's
     power is limited by what the battery holds, and by pb_plan: `deliverable`)."""
     return meets(deliverable(vp, r, E_b, dt, pb_plan), P_need)
