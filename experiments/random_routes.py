@@ -13,7 +13,7 @@ each strategy compiles once or twice (256 or 512 steps). Float64.
 
 `--json` prints one JSON object ``{"rows": [...], "summary": {...}, ...}`` on stdout; progress
 goes to stderr. The property test `test_any_route_runs_to_its_end_with_its_energy_balanced`
-(tests/test_strategies.py) draws routes of the same kind.
+(tests/test_strategies.py) draws its routes with `random_rows` too.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ import argparse
 import sys
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 from jax import config
@@ -31,7 +32,7 @@ config.update("jax_enable_x64", True)
 from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
 from jaxems.report import CHARGE_SHARE, off_charge  # noqa: E402
-from jaxems.route import Row, route_from_rows  # noqa: E402
+from jaxems.route import Route, Row, route_from_rows  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -42,23 +43,49 @@ DEFAULT_STRATEGIES = ("conventional", "baseline", "multilevel")
 SPEEDS_KMH = (30, 50, 70, 90)
 
 
-def random_rows(rng: np.random.Generator, grade_max: float) -> list[tuple]:
-    """(s m, v km/h, grade %, stop s) rows of one random route (see the module docstring)."""
-    L = round(float(rng.uniform(300.0, 1000.0)), 1)
-    n = int(rng.integers(1, 5))
-    cuts = np.sort(rng.choice(np.arange(5, 96), size=n - 1, replace=False))
-    starts = [0.001] + [round(float(c) * L / 100.0, 1) for c in cuts]
-    stop_at = int(rng.integers(0, n)) if n > 1 else 0  # 0: no stop halfway
+class NumpyPick(NamedTuple):
+    """What `random_rows` draws, from a NumPy generator (the property test's `HypothesisPick`
+    draws the same with hypothesis)."""
+
+    rng: np.random.Generator
+
+    def real(self, lo: float, hi: float) -> float:
+        return float(self.rng.uniform(lo, hi))
+
+    def whole(self, lo: int, hi: int) -> int:  # lo..hi, both included
+        return int(self.rng.integers(lo, hi + 1))
+
+    def one_of(self, seq):
+        return seq[int(self.rng.integers(len(seq)))]
+
+    def distinct(self, n: int, lo: int, hi: int) -> list[int]:  # sorted, lo..hi
+        return sorted(int(x) for x in self.rng.choice(np.arange(lo, hi + 1), n, replace=False))
+
+
+def random_rows(pick, grade_max: float = 8.0) -> list[tuple]:
+    """(s m, v km/h, grade %, stop s) rows of one random route (see the module docstring);
+    pick: draws real(lo, hi), whole(lo, hi), one_of(seq) and distinct(n, lo, hi)."""
+    L = round(pick.real(300.0, 1000.0), 1)
+    n = pick.whole(1, 4)
+    starts = [0.001] + [round(c * L / 100.0, 1) for c in pick.distinct(n - 1, 5, 95)]
+    stop_at = pick.whole(0, n - 1)  # 0: no stop halfway
     rows = [(0.0, 0.0, 0.0, 5.0)]
     for i, s0 in enumerate(starts):
-        v = float(rng.choice(SPEEDS_KMH))
-        g = round(float(rng.uniform(-grade_max, grade_max)), 1)
+        v = float(pick.one_of(SPEEDS_KMH))
+        g = round(pick.real(-grade_max, grade_max), 1)
         if i and i == stop_at:
             rows += [(s0, 0.0, g, 10.0), (s0 + 0.001, v, g, 0.0)]
         else:
             rows.append((s0, v, g, 0.0))
     rows.append((L, 0.0, 0.0, 2.0))
     return rows
+
+
+def route_of(rows) -> Route:
+    """The `Route` of `random_rows`' rows: 10 m cells, padded to 512 nodes (the short track's
+    shape)."""
+    return route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], ds=10.0,
+                           bucket=512)
 
 
 def run_routes(n: int = 60, seed: int = 1, grade_max: float = 8.0,
@@ -77,13 +104,12 @@ def run_routes(n: int = 60, seed: int = 1, grade_max: float = 8.0,
     if len(masses) != 2 or not 0 < masses[0] <= masses[1]:
         raise ValueError(f"--masses: two masses in kg, the least first (got {masses})")
     base = load_vehicle(vehicle)
-    rng = np.random.default_rng(seed)
+    pick = NumpyPick(np.random.default_rng(seed))
     rows = []
     for k in range(n):
-        spec = random_rows(rng, grade_max)
-        mass = round(float(rng.uniform(*masses)), 1)
-        route = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(spec)], ds=10.0,
-                                bucket=512)
+        spec = random_rows(pick, grade_max)
+        mass = round(pick.real(*masses), 1)
+        route = route_of(spec)
         vp = check_vehicle(with_overrides(base, mass_kg=mass))
         size = float(vp.E_b_max)
         here = {}

@@ -1,18 +1,13 @@
 """benchmarks/bench_fastsim.py: the Level 3 trace as a FASTSim cycle (FASTSim itself optional)."""
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from jaxems.params import load_vehicle
 from jaxems.route import Row, elevation, route_from_rows
+from repo_scripts import load_script
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_fastsim.py"
-_spec = importlib.util.spec_from_file_location("bench_fastsim", _PATH)
-bf = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bf)
+bf = load_script("benchmarks/bench_fastsim.py")
 
 
 def _route():

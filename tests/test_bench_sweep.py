@@ -1,14 +1,10 @@
 """benchmarks/bench_sweep.py: its --option parsing (the measurements themselves are benchmarks)."""
 
-import importlib.util
-from pathlib import Path
-
 import pytest
+from repo_scripts import ROOT, load_script
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_sweep.py"
-_spec = importlib.util.spec_from_file_location("bench_sweep", _PATH)
-bs = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(bs)
+_PATH = ROOT / "benchmarks" / "bench_sweep.py"
+bs = load_script("benchmarks/bench_sweep.py")
 
 
 def test_options_are_toml_values_checked_as_a_sweep_files():
@@ -47,10 +43,7 @@ def test_source_hash_names_the_files_and_their_bytes(tmp_path):
     assert bs.code_version()["jaxems_sha256"] == bs.source_hash(_PATH.parents[1] / "jaxems")
 
 
-_cpath = Path(__file__).resolve().parents[1] / "benchmarks" / "compare_fuel.py"
-_cspec = importlib.util.spec_from_file_location("compare_fuel", _cpath)
-cf = importlib.util.module_from_spec(_cspec)
-_cspec.loader.exec_module(cf)
+cf = load_script("benchmarks/compare_fuel.py")
 
 
 def test_compare_fuel_matches_a_plain_computation(tmp_path):

@@ -6,9 +6,7 @@ scripts run in-process so that they share compilations with each other and with
 tests/test_cli_simulate.py (conventional, baseline and multilevel with n_iter = 2, 25 t).
 """
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,17 +15,13 @@ from jaxems.io import load_route
 from jaxems.levels.velocity import predict_velocity
 from jaxems.params import load_vehicle, with_overrides
 from jaxems.strategies import simulate
+from repo_scripts import load_script
 
-ROOT = Path(__file__).resolve().parent.parent
 LHV_J_PER_KG, DENSITY_KG_PER_L = 42.8e6, 0.832  # data/vehicles/reference_truck.toml [fuel]
 
 
 def _script(name):
-    path = ROOT / "experiments" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"exp_{name}", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script(f"experiments/{name}.py", f"exp_{name}")
 
 
 table7, table8, traces = _script("table7"), _script("table8"), _script("traces")
@@ -212,8 +206,6 @@ def test_random_routes_rows_are_runs_and_the_summary_their_arithmetic(capsys):
     """random_routes: each row is `simulate` on its route (rebuilt from the row's own rows) and
     mass; the fuel ratios are against the same route's conventional run, and the summary
     counts what the rows say; bad input is one line naming the option."""
-    from jaxems.route import Row, route_from_rows
-
     rr = _script("random_routes")
     d, err = main_json(rr, ["--n", "2", "--strategies", "conventional,multilevel"], capsys)
     assert "random_routes: route 1" in err
@@ -221,8 +213,7 @@ def test_random_routes_rows_are_runs_and_the_summary_their_arithmetic(capsys):
     assert [(r["route"], r["strategy"]) for r in rows] == [
         (0, "conventional"), (0, "multilevel"), (1, "conventional"), (1, "multilevel")]
     for r in rows:
-        route = route_from_rows([Row(*x, line=i + 2) for i, x in enumerate(r["rows"])],
-                                ds=10.0, bucket=512)
+        route = rr.route_of(r["rows"])
         assert r["rows"][0] == [0.0, 0.0, 0.0, 5.0] and r["rows"][-1][1:] == [0.0, 0.0, 2.0]
         assert all(abs(x[2]) <= 8.0 for x in r["rows"])
         assert 15000.0 <= r["mass_kg"] <= 40000.0

@@ -8,6 +8,7 @@ with the paper), stated per test.
 """
 
 import re
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,10 +23,12 @@ from jaxems import xla
 from jaxems.io import load_route
 from jaxems.sweep import compare_strategies
 from jaxems.params import VehicleError, load_vehicle, stack_vehicles
+from repo_scripts import load_script
 
 VP = load_vehicle().replace(mass=25000.0)
 LEVEL3 = xla.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound")
+RR = load_script("experiments/random_routes.py")  # random_rows, route_of
 
 
 @pytest.fixture(scope="module")
@@ -568,39 +571,50 @@ def test_multilevel_batch_equals_single_runs(runs):
             assert out[k][i] == r[k], (i, k, out[k][i], r[k])
 
 
-def short_shaped_route(rows, vp):
-    """A route from (s m, v km/h, grade %, stop s) rows with the short track's shapes (nodes,
-    and steps for vp), so that its runs reuse the compilations of the short track's."""
-    from jaxems.route import Row, route_from_rows
-
-    route = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], ds=10.0,
-                            bucket=512)
+def short_shaped(rows, vp):
+    """(route, whether it has the short track's shapes): the route of (s m, v km/h, grade %,
+    stop s) rows (`random_routes.route_of`), and whether its nodes and steps for vp are the
+    short track's, so that its runs reuse the compilations of the short track's."""
+    route = RR.route_of(rows)
     short = load_route("short_track")
-    assert route.grade.shape == short.grade.shape
-    assert S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP)
+    same = (route.grade.shape == short.grade.shape
+            and S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP))
+    return route, same
+
+
+def short_shaped_route(rows, vp):
+    """`short_shaped`'s route, which must have the short track's shapes."""
+    route, same = short_shaped(rows, vp)
+    assert same
     return route
+
+
+class HypothesisPick(NamedTuple):
+    """What `random_routes.random_rows` draws, drawn by hypothesis (its `NumpyPick` draws the
+    same from a NumPy generator)."""
+
+    draw: Any
+
+    def real(self, lo, hi):
+        return self.draw(st.floats(lo, hi))
+
+    def whole(self, lo, hi):
+        return self.draw(st.integers(lo, hi))
+
+    def one_of(self, seq):
+        return self.draw(st.sampled_from(seq))
+
+    def distinct(self, n, lo, hi):
+        return sorted(self.draw(st.lists(st.integers(lo, hi), min_size=n, max_size=n,
+                                         unique=True)))
 
 
 @st.composite
 def launch_routes(draw):
-    """(rows, mass): a launch from a stop, 1-4 sections of -8 to +8 % and 30-90 km/h over
-    300-1000 m, perhaps a 10 s stop between two of them, a stop at the end; 15-40 t."""
-    L = draw(st.floats(300.0, 1000.0))
-    n = draw(st.integers(1, 4))
-    cuts = sorted(draw(st.lists(st.integers(5, 95), min_size=n - 1, max_size=n - 1,
-                                unique=True)))
-    starts = [0.001] + [round(c * L / 100.0, 1) for c in cuts]
-    stop_at = draw(st.sampled_from([None] + list(range(1, n))))
-    rows = [(0.0, 0.0, 0.0, 5.0)]
-    for i, s0 in enumerate(starts):
-        v = float(draw(st.sampled_from([30, 50, 70, 90])))
-        g = round(draw(st.floats(-8.0, 8.0)), 1)
-        if i == stop_at:
-            rows += [(s0, 0.0, g, 10.0), (s0 + 0.001, v, g, 0.0)]
-        else:
-            rows.append((s0, v, g, 0.0))
-    rows.append((round(L, 1), 0.0, 0.0, 2.0))
-    return rows, draw(st.floats(15e3, 40e3))
+    """(rows, mass): `random_routes.random_rows` (a launch from a stop, 1-4 sections of -8 to
+    +8 % and 30-90 km/h over 300-1000 m, perhaps a 10 s stop between two of them, a stop at
+    the end), 15-40 t."""
+    return RR.random_rows(HypothesisPick(draw)), draw(st.floats(15e3, 40e3))
 
 
 @settings(max_examples=25)
@@ -619,11 +633,8 @@ def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
     "Beyond the bundled routes")."""
     rows, mass = case
     vp = VP.replace(mass=mass)
-    from jaxems.route import Row, route_from_rows
-
-    probe = route_from_rows([Row(*r, line=i + 2) for i, r in enumerate(rows)], bucket=512)
-    assume(S.steps_for_batch(probe, vp) == S.steps_for_batch(load_route("short_track"), VP))
-    route = short_shaped_route(rows, vp)
+    route, same = short_shaped(rows, vp)
+    assume(same)
     for name in ("conventional", "baseline", "multilevel"):
         r = S.simulate(route, vp, name)
         d = r.as_dict()
