@@ -36,6 +36,12 @@ PRED = PRED_STEEP = None  # Level 3 on ROUTE, STEEP: set by the module fixture `
 N_PLANT = 320
 
 
+def truck(hybrid, **fields):
+    """VP with these fields replaced, the hybrid or its conventional truck (no motor)."""
+    vp = VP.replace(**fields)
+    return vp if hybrid else vp.conventional()
+
+
 @pytest.fixture(scope="module", autouse=True)
 def _prediction():
     global PRED, PRED_STEEP
@@ -78,9 +84,7 @@ def rel_balance(res, vp):
     hybrid=st.booleans(),
 )
 def test_energy_balance_closes(mass, lam, battery, hybrid):
-    vp = VP.replace(mass=mass, E_b_max=battery)
-    if not hybrid:
-        vp = vp.conventional()
+    vp = truck(hybrid, mass=mass, E_b_max=battery)
     res = run(vp, lam)
     assert bool(res.final.done)
     assert rel_balance(res, vp) < BALANCE_RTOL
@@ -480,7 +484,7 @@ def assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req,
     load's power at v on this grade plus `extra` (W), a switch costing the speed the road
     load takes in one open second, a plan's battery power pb_plan (W, inf: none); returns the
     state."""
-    vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
+    vp = truck(hybrid, mass=mass)
     F0 = float(pt.road_load(vp, v, grade))
     v_after = max(v - max(F0, 0.0) / mass, 0.1)
     P_need = max(F0, 0.0) * v + extra
@@ -521,7 +525,7 @@ def test_protection_in_a_crawl_up_a_steep_climb(v, grade, extra, E_frac, mass, s
     got = assert_protection_equals_its_loop(v, grade, extra, E_frac, -2.2, mass, s_req, s_cur,
                                             hybrid)
     if got == s_cur and s_req != s_cur:
-        vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
+        vp = truck(hybrid, mass=mass)
         F0 = float(pt.road_load(vp, v, grade))
         give_after = P.deliverable(vp, P.all_ranges(vp, max(v - F0 / mass, 0.1)),
                                    E_frac * float(vp.E_b_max), 1.0)
@@ -641,8 +645,7 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
     without catching up on the battery; the route has two stops, a climb and a descent; a
     small battery reaches its limits."""
     rng = np.random.default_rng(seed)
-    vp = VP.replace(mass=mass, E_b_max=battery)
-    vp = vp if hybrid else vp.conventional()
+    vp = truck(hybrid, mass=mass, E_b_max=battery)
     base = run(vp, -2.2).trace
     cmds = wild_commands(rng, np.asarray(base.mode), np.asarray(base.gear))
     assert_plant_equals_its_loop(vp, cmds, ROUTE, PRED, 100)
@@ -658,8 +661,7 @@ def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, 
     (`plant.held_top_speed`), never stalling, where it ran past that speed, was switched
     up, stalled within the second and launched again. The plant equals its loop."""
     rng = np.random.default_rng(seed)
-    vp = VP.replace(mass=mass, E_b_max=battery)
-    vp = vp if hybrid else vp.conventional()
+    vp = truck(hybrid, mass=mass, E_b_max=battery)
     drive = ps.MC if hybrid else ps.ME
     ask = np.minimum(np.arange(N_PLANT) // 8, VP.gear_ratio.shape[0] - 1)
     cmds = wild_commands(rng, np.full(N_PLANT, drive), ask)
@@ -684,7 +686,7 @@ held_top = xla.jit(lambda vp, mode, gear, F0, E_b: P.held_top_speed(vp, mode, ge
 def test_held_top_speed_equals_its_loop(mode, gear, grade, v, E_b, mass, hybrid):
     """`plant.held_top_speed` against the reference's: the gear's top speed where the next
     gear cannot take over after a switch's open second, else +inf (open mode: always)."""
-    vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
+    vp = truck(hybrid, mass=mass)
     F0 = float(pt.road_load(vp, v, grade))
     got = float(held_top(vp, mode, gear, F0, E_b))
     want = R._held_top(R._veh(vp), mode, gear, F0, E_b, 1.0)
@@ -707,7 +709,7 @@ def test_held_top_speed_only_where_no_faster_state_takes_over(mass, grade, mode,
     """Where a heavy truck can still shift up on 15 %, or a hybrid at motor-only's top speed
     can go on with the engine, nothing holds it; on 17 % at 40 t or 30 % at 20 t gear 1 is
     held at its top speed, 2.68 m/s."""
-    vp = VP.replace(mass=mass) if hybrid else VP.replace(mass=mass).conventional()
+    vp = truck(hybrid, mass=mass)
     v_top = float(P._top_speed(vp, mode, gear))
     got = float(held_top(vp, mode, gear, float(pt.road_load(vp, v_top, grade)), 0.5 * 4e6))
     assert (got == pytest.approx(v_top, rel=1e-4)) if held else np.isinf(got)
