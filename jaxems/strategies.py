@@ -207,7 +207,9 @@ def plant_steps(n_steps: int, opts: Options) -> int:
 class Plan(NamedTuple):
     """A plan indexed by Level 3 step: (T,) mode, gear, costate, battery power (W) and the
     battery energy the plan expects at the start of each step (J); k_E (1/s) is the gain of the
-    battery power's feedback on the energy's deviation from the plan."""
+    battery power's feedback on the energy's deviation from the plan; level0 (bool ()):
+    Level 0 counts only the plan's battery power below its energy (`Options`'s
+    level0_plan_power, `plant.Command.level0_plan`)."""
 
     mode: Any
     gear: Any
@@ -215,7 +217,7 @@ class Plan(NamedTuple):
     P_b: Any
     E_ref: Any
     k_E: Any
-    level0: Any = True
+    level0: Any
 
 
 def plan_controller(plan: Plan, cstate, vp, obs: pl.Obs):

@@ -7,6 +7,7 @@ tolerances are the ones the implementation reaches on this track (see the README
 with the paper), stated per test.
 """
 
+import functools
 import re
 from typing import Any, NamedTuple
 
@@ -576,10 +577,15 @@ def short_shaped(rows, vp):
     stop s) rows (`random_routes.route_of`), and whether its nodes and steps for vp are the
     short track's, so that its runs reuse the compilations of the short track's."""
     route = RR.route_of(rows)
+    shape, steps = _short_track_shapes()
+    return route, route.grade.shape == shape and S.steps_for_batch(route, vp) == steps
+
+
+@functools.lru_cache(maxsize=1)
+def _short_track_shapes():
+    """(node shape, Level 3 steps at 25 t) of the short track, read and predicted once."""
     short = load_route("short_track")
-    same = (route.grade.shape == short.grade.shape
-            and S.steps_for_batch(route, vp) == S.steps_for_batch(short, VP))
-    return route, same
+    return short.grade.shape, S.steps_for_batch(short, VP)
 
 
 def short_shaped_route(rows, vp):
