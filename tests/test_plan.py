@@ -29,6 +29,9 @@ PARAMS = sw.SwitchCostParams()
 # computed them while collecting, whether it ran this file or not.
 PRED = R1 = T = MID = PID = None
 level1 = xla.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))  # lam_t: (T,)
+# Level 1's decisions on the path `sides` (T,) where it is >= 0, the DP's elsewhere
+level1_path = xla.jit(lambda lam_t, sides: S._level1(
+    VP, PRED, lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p)))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -148,6 +151,26 @@ def test_compensate_raises_each_target_by_the_drift_over_its_stretch():
     s_mid = float(PRED.s[MID])
     np.testing.assert_allclose(np.asarray(target), [2.0 * s_mid, 2.0 * (L - s_mid)], rtol=1e-9)
     np.testing.assert_array_equal(np.asarray(pid), np.asarray(PID))
+
+
+def test_level1_targets_raise_the_trips_last_piece_by_the_reserve():
+    """`level1_targets`: Level 2's pieces made up for the drift (`compensate`), and the piece
+    of the trip's last step (not the padded ones after it) raised by the reserve."""
+
+    class C2:  # the fields level1_targets reads, as Level 2 returns them (K = 3)
+        lam = jnp.full(T, -2.0)
+        boundaries = jnp.asarray([0, MID, T, T])
+        E_bnd = jnp.asarray([2e6, 1.5e6, 2e6, 2e6])
+
+    opts = S.Options(guard_sides=False)
+    drift = S.no_drift(PRED)
+    last = int(np.sum(np.asarray(PRED.mask))) - 1
+    assert last < T - 1  # the prediction is padded
+    for reserve in (0.0, 4e4):
+        lam, (pid, target) = S.level1_targets(VP, PRED, C2, drift, opts, reserve)
+        np.testing.assert_allclose(np.asarray(target), [-0.5e6, 0.5e6 + reserve, 0.0])
+        assert int(pid[last]) == 1
+        np.testing.assert_array_equal(np.asarray(lam), np.asarray(C2.lam))
 
 
 def test_piece_targets_map_steps_to_level2_pieces():
@@ -339,19 +362,25 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
 def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     """`sustaining_level1`'s DPs one by one, each its own call, the logic between them in NumPy:
     the shift's bisection, the two sides, the time split's bisection on their plans joined, the
-    four candidates. Returns (lambda_b (T,) of the final plan, the number of DPs run)."""
+    four candidates, and the sides' plans joined at the split as two more where no DP comes
+    as near. Returns (lambda_b (T,) of the final plan, the path (T,) of states a piece takes
+    from the sides' plans joined, -1 where it takes the final DP's, the number of DPs run)."""
     lo_b, hi_b = l2.LAM_BRACKET
     lam, pid, target = np.broadcast_to(lam, (T,)), np.asarray(pid), np.asarray(target)
     K = target.shape[0]
     n_dp = [0]
+    E0, E_max = VP.soc0 * VP.E_b_max, VP.E_b_max
 
-    def score(lam_t):  # (held error, what the limits hold, the plan's steps' energy)
+    def score_dE(dE):  # (error, held error, what the limits hold)
+        e = np.bincount(pid, dE, K) - target
+        _, E_end, goal = ref_battery_path(E0, E_max, dE, pid, target)
+        return e, E_end - goal, np.abs(E_end - goal - e)
+
+    def score(lam_t):  # score_dE's, the plan's steps' energy and states
         r = level1(jnp.asarray(lam_t))
         dE = np.asarray(energy(r.mode, r.gear, r.P_b))
         n_dp[0] += 1
-        e = np.bincount(pid, dE, K) - target
-        _, E_end, goal = ref_battery_path(VP.soc0 * VP.E_b_max, VP.E_b_max, dE, pid, target)
-        return e, E_end - goal, np.abs(E_end - goal - e), dE
+        return (*score_dE(dE), dE, np.asarray(r.state))
 
     shifted = lambda d: np.clip(lam + d[pid], lo_b, hi_b)  # noqa: E731
     a, b = np.full(K, -1.5), np.full(K, 1.5)
@@ -360,24 +389,33 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         pos = score(shifted(m))[0] > 0
         a, b = np.where(pos, m, a), np.where(pos, b, m)
     ja, jb = shifted(a - gap), shifted(b + gap)
-    (_, e_a, h_a, dE_a), (_, e_b, h_b, dE_b) = score(ja), score(jb)
+    (_, e_a, h_a, dE_a, st_a), (_, e_b, h_b, dE_b, st_b) = score(ja), score(jb)
     charge_first = h_b > h_a
-    first, then = np.where(charge_first[pid], ja, jb), np.where(charge_first[pid], jb, ja)
     then_high = np.where(charge_first, e_b, e_a) > 0
     k = np.arange(T)
-    joined = lambda ts: np.where(k < ts[pid], first, then)  # noqa: E731
-    d_first, d_then = (np.where(charge_first[pid], x, y) for x, y in ((dE_a, dE_b), (dE_b, dE_a)))
+    # (first, then) of the sides' costates, plans' energies and states
+    first_then = lambda x, y: (np.where(charge_first[pid], x, y),  # noqa: E731
+                               np.where(charge_first[pid], y, x))
+    joined = lambda ts, xy: np.where(k < ts[pid], xy[0], xy[1])  # noqa: E731
+    lams, dEs, states = first_then(ja, jb), first_then(dE_a, dE_b), first_then(st_a, st_b)
     t0, t1 = piece_bounds(pid, K)
     for _ in range(S._split_bisections(T)):
         m = (t0 + t1) // 2
-        e = ref_joined_error(d_first, d_then, pid, target, m, VP.soc0 * VP.E_b_max, VP.E_b_max)
+        e = ref_joined_error(*dEs, pid, target, m, E0, E_max)
         on = (e > 0) == then_high
         t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
-    cands = [shifted(a), shifted(b), joined(t0), joined(t1)]
-    errs, held = np.array([score(c)[1:3] for c in cands]).transpose(1, 0, 2)
+    cands = [shifted(a), shifted(b), joined(t0, lams), joined(t1, lams)]
+    scores = [score(c)[1:3] for c in cands] + [score_dE(joined(t, dEs))[1:] for t in (t0, t1)]
+    errs, held = np.array(scores).transpose(1, 0, 2)  # (6, K) each
     near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * VP.E_b_max
-    best = np.argmin(np.where(near, held + 1e-3 * np.abs(errs), np.inf), axis=0)
-    return np.array(cands)[best[pid], k], n_dp[0]
+    best = np.empty(K, int)
+    for p in range(K):  # a DP that comes as near, the least held; else any
+        order = [c for c in range(6) if near[c, p] and (c < 4 or not near[:4, p].any())]
+        best[p] = min(order, key=lambda c: held[c, p] + 1e-3 * abs(errs[c, p]))
+    cands += cands[2:]
+    sides = np.where(best == 4, t0, t1)
+    path = np.where((best >= 4)[pid], joined(sides, states), -1)
+    return np.array(cands)[best[pid], k], path, n_dp[0]
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="on a GPU its DPs run one by one "
@@ -387,14 +425,18 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
 @pytest.mark.parametrize("target", [(0.0, 0.0), (-4e5, 3e5), (6e5, -9e5)])
 def test_sustaining_level1_equals_its_dps_run_one_by_one(target):
     """The one loop of `sustaining_level1` (one DP in its body) against its phases run one
-    by one: the same costate, decisions and DP count."""
+    by one: the same costate, decisions and DP count. At (-4e5, 3e5) the first piece takes
+    the sides' plans joined (no DP comes as near its target)."""
     lam = jnp.full(T, -2.0)
     r, lam_t = sustain(lam, PID, jnp.asarray(target, float))
-    want, n_dp = loop_sustaining(-2.0, PID, target)
+    want, sides, n_dp = loop_sustaining(-2.0, PID, target)
+    if target == (-4e5, 3e5):  # the case covers the sides' plans joined
+        assert np.all(sides[np.asarray(PID) == 0] >= 0)
     assert n_dp + 1 == S.sustaining_dps(T)  # and the final plan's
     np.testing.assert_allclose(np.asarray(lam_t), want, rtol=1e-12, atol=1e-12)
-    # the final plan as Level 1 alone gives it, switching costs included
-    r_want = level1(jnp.asarray(want))
+    # the final plan as Level 1 alone gives it, switching costs included, on the path the
+    # pieces take: the final DP's, or the sides' plans joined
+    r_want = level1_path(jnp.asarray(want), jnp.asarray(sides))
     np.testing.assert_array_equal(np.asarray(r.state), np.asarray(r_want.state))
     for f in ("P_b", "P_f", "switch_cost", "cost"):
         np.testing.assert_allclose(np.asarray(getattr(r, f)), np.asarray(getattr(r_want, f)),

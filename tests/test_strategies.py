@@ -726,10 +726,11 @@ def test_baselines_speed_credit_leaves_a_heavy_truck_its_charge():
     assert float(np.min(before.trace.E_b)) < 0.05 * size
 
 
-def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
+def test_plans_aim_above_the_start_only_where_the_final_braking_is_capped():
     """The short track ends cruising (its last step pulls): no cap, no reserve. `braking_route`
     ends braking to a stop: with the cap the MPC's end target is the start plus
-    mpc_end_reserve of the battery, without it the start."""
+    mpc_end_reserve of the battery, without it the start; the iteration's last plan's reserve
+    (`end_reserve`) is the same share of the battery, or 0."""
     from jaxems import plant as pl
 
     vp = load_vehicle().replace(mass=20000.0)
@@ -741,9 +742,12 @@ def test_mpc_aims_above_the_start_only_where_the_final_braking_is_capped():
         for cap in (True, False):
             opts = S.Options(end_cap=cap, mpc_end_reserve=0.05)
             track = pl.make_track(route, pred, cap)
-            want = E0 + (0.05 * size if cap and brakes_to_end else 0.0)
-            assert float(S.mpc_end_target(vp, track, opts)) == pytest.approx(want), (name, cap)
-    with pytest.raises(ValueError, match="mpc_end_reserve"):
-        S.simulate("short_track", vp, "multilevel-mpc", mpc_end_reserve=1.5)
+            reserve = 0.05 * size if cap and brakes_to_end else 0.0
+            assert float(S.mpc_end_target(vp, track, opts)) == pytest.approx(E0 + reserve), (
+                name, cap)
+            assert float(S.end_reserve(vp, track, 0.05)) == pytest.approx(reserve), (name, cap)
+    for option in ("mpc_end_reserve", "end_reserve"):
+        with pytest.raises(ValueError, match=option):
+            S.simulate("short_track", vp, "multilevel-mpc", **{option: 1.5})
     with pytest.raises(ValueError, match="end_cap"):
         S.simulate("short_track", vp, "baseline", end_cap="no")

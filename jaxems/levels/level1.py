@@ -441,7 +441,9 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params,
 
 # ------------------------------------------------------------------------------ full horizon
 def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
-                 trac=None, switch_costs=True, fixed=None):
+                 trac=None, switch_costs=True, fixed=None, path_of=None):
+    """path_of: None, or a function of the DP's path (T,) of states giving the path whose
+    decisions and costs are returned (at this costate)."""
     TRACES["level1_full"] += 1
     tb = _tables(vp, P_d, v, grade, lam, dt, params, trac, fixed)
     S = tb.stage.shape[1]
@@ -449,7 +451,8 @@ def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params,
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
     r = solve_dp(vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask,
                  fast=fast)
-    return _result(vp, tb, r.path, r.start, v, grade, dt, mask, params, switch_costs)
+    path = r.path if path_of is None else path_of(r.path)
+    return _result(vp, tb, path, r.start, v, grade, dt, mask, params, switch_costs)
 
 
 _level1_full_jit = jit(_level1_full)
