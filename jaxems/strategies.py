@@ -116,7 +116,9 @@ class Options(NamedTuple):
     (its final braking), the plant's battery stores no more than the trip started with and the
     service brakes take the rest (`plant.Track.final_s`; False: it stores all it can);
     mpc_end_reserve: share of the battery the MPC aims its end above the start where that cap
-    applies (`mpc_end_target`); level0_plan_power: below a plan's battery energy, Level 0 counts
+    applies (`mpc_end_target`); end_reserve: the same for the last plan of the multilevel
+    iteration, on its trip's last Level 2 piece (`end_reserve`, `level1_targets`);
+    level0_plan_power: below a plan's battery energy, Level 0 counts
     only the plan's battery power in the engine's states when it asks whether a state serves
     (`plant.Command.level0_plan`: where the plan's gear cannot hold the speed on its engine,
     the driveline shifts down; False: it counts what the battery holds, as before 2026-11-27,
