@@ -500,6 +500,13 @@ def held_top_speed(vp: VehicleParams, mode, gear, F0, E_b, dt):
     return jnp.where(escapes, jnp.inf, v_top * (1.0 - 1e-5))
 
 
+def speed_after_switch(vp: VehicleParams, v_op, F0):
+    """The speed (m/s) Level 0 asks a state switched into to run at: v_op less what road load
+    F0 (N, where it resists) takes in the longer open time (a mode and gear switch), at least
+    0.1. Broadcasts."""
+    return jnp.maximum(v_op - jnp.maximum(F0, 0.0) * _open_time(vp, True, True) / vp.mass, 0.1)
+
+
 def protection(dt):
     """Level 0 as the plant's step calls it: `protected_state` where `requested_serves` does
     not already know the answer (`shard.shortcut`; dt: the step, s)."""
@@ -569,8 +576,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     P_need = jnp.where(v0 > 0, jnp.minimum(P_req, P_follow), P_req)
     # a switch opens the driveline: the state switched into must still run after the speed
     # lost meanwhile
-    dv_sw = jnp.maximum(F0, 0.0) * t_open / vp.mass
-    v_after = jnp.maximum(v_op - dv_sw, 0.1)
+    v_after = speed_after_switch(vp, v_op, F0)
     # a plan that holds the battery (below its energy, `Command.catch_up`) allows the motor
     # its planned power in the engine's states, not the battery's: a state serves with that
     planned = jnp.isfinite(cmd.P_b)

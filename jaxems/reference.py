@@ -1393,6 +1393,21 @@ def _capable(f, c, E_b, P_need, dt, pb_plan=math.inf):
     return _deliverable(f, c, E_b, dt, pb_plan) >= P_need - 1e-6 * abs(P_need)
 
 
+def ref_level0_takes(vp: VehicleParams, s_from: int, s_to: int, P_need, v, grade, lam,
+                     dt: float = 1.0, E_b=None) -> bool:
+    """Whether Level 0 (`_protect`, as the plant's step calls it) keeps the switch from state
+    s_from into s_to (index mode * n_gears + gear) at speed v (m/s) on `grade`, for the power
+    P_need (W): s_to must run at v and, after the longer open time's speed loss to road load,
+    at what is left (at least 0.1 m/s); E_b: the battery's energy (None: full)."""
+    f = _veh(vp)
+    v = float(v)
+    F0 = float(road_load(f, v, float(grade)))
+    v_after = max(v - max(F0, 0.0) * max(f.dt_M, f.dt_G) / f.mass, 0.1)
+    E = f.E_b_max if E_b is None else float(E_b)
+    return _protect(f, vp, E, float(P_need), v, v_after, float(lam), int(s_to), int(s_from),
+                    v <= 0, dt) == int(s_to)
+
+
 def ref_sync_energy(vp: VehicleParams, mode0, gear0, mode1, gear1, v) -> float:
     """Synchronisation energy (J) of the switch (mode0, gear0) -> (mode1, gear1) at speed v
     (m/s), as `plant.sync_energy`: plain Python on the vehicle's floats."""
@@ -1702,4 +1717,5 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
     return steps, tot, final
 
 
-__all__ += ["RefPlantStep", "ref_level1", "ref_plant", "ref_sync_energy", "ref_track"]
+__all__ += ["RefPlantStep", "ref_level1", "ref_plant", "ref_level0_takes", "ref_sync_energy",
+            "ref_track"]

@@ -520,6 +520,40 @@ def split_sides(vp, dE_first, dE_then, pid, target, t0, t1, then_high):
     return jax.lax.fori_loop(0, _split_bisections(dE_first.shape[0]), bis, (t0, t1))
 
 
+def join_steps(vp, pred, lam, dt, pid, start, end, t0, t1, s_first, s_then):
+    """(2, K) where `sustaining_level1` joins its sides' plans as they are: each piece's t0 and
+    t1 (K,) of the time split where Level 0 takes the switch there (from s_first's state before
+    the step into s_then's at it, at the plan's demand and speed, the battery full: the plan's
+    battery is judged by its held error, not here; `plant.requested_serves`), else the nearest
+    step at or before t0 / at or after t1 whose predecessor both plans run in the same state
+    (the piece's start or end at the latest), so that the joined path makes no switch that
+    neither plan makes. On the short track at 20 t, joined mid-climb, a plan switched from M_e
+    into M_m in gear 5, which after the open second could not pull the climb: the plant stayed
+    in M_e for ten seconds and ended 1.2 MJ high. pid, s_first, s_then, lam: (T,); start, end
+    (K,): each piece's first step and one past its last."""
+    T = pid.shape[0]
+    K = start.shape[0]
+    k = jnp.arange(T)
+
+    def taken(ts):  # (K,): Level 0 takes the switch at ts, or ts joins nothing mid-piece
+        t = jnp.clip(ts, 1, T - 1)
+        s_from, s_to, v = s_first[t - 1], s_then[t], pred.v[t]
+        v_after = pl.speed_after_switch(vp, v, pt.road_load(vp, v, pred.grade[t]))
+        ok = jax.vmap(lambda P, v, va, l, a, b: pl.requested_serves(
+            vp, vp.E_b_max, P, v, va, l, a, b, v <= 0, jnp.inf, dt)[0])(
+                jnp.maximum(pred.P_d[t], 0.0), v, v_after, lam[t], s_to, s_from)
+        return ok | (s_from == s_to) | (ts <= start) | (ts >= end)
+
+    prev = lambda x: jnp.concatenate([x[:1], x[:-1]])  # noqa: E731
+    agree = (k == start[pid]) | (prev(s_first) == prev(s_then))
+    j0 = jnp.full((K,), -1, jnp.int32).at[pid].max(
+        jnp.where(agree & (k <= t0[pid]), k, -1).astype(jnp.int32))
+    j1 = jnp.full((K,), T, jnp.int32).at[pid].min(
+        jnp.where(agree & (k >= t1[pid]), k, T).astype(jnp.int32))
+    return jnp.stack([jnp.where(taken(t0), t0, jnp.maximum(j0, start)),
+                      jnp.where(taken(t1), t1, jnp.minimum(j1, end))]).astype(t0.dtype)
+
+
 def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14,
                       gap: float = 0.05, fast=None, tol_rel: float = 2.5e-3):
     """Level 1 that keeps Level 2's battery plan: on each Level 2 piece (pid: (T,) step ->
@@ -603,39 +637,41 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
                                 cands[jnp.clip(i - p_cand, 0, 3)],
                                 cands[choice(held_err, held)[pid], k])
 
-    def final_path(phase, held_err, held, t0, t1, states):  # the DP's path -> the plan's path
+    def final_path(phase, held_err, held, js, states):  # the DP's path -> the plan's path
         # a piece whose candidate is the sides' plans joined takes their states (the final
         # DP's costate there is theirs, so its decisions and costs are the sides'; its
         # switching costs count the switch where they join)
         best = choice(held_err, held)
         first, then = first_then(order(held_err, held)[0], states[0], states[1])
         use = (phase == 4) & (best >= 4)
-        sides_path = joined(jnp.where(best == 4, t0, t1), first, then)
+        sides_path = joined(jnp.where(best == 4, js[0], js[1]), first, then)
         return lambda path: jnp.where(use[pid], sides_path, path)
 
-    def split(held_err, held, t0, t1, sides):  # the time split on the sides' plans (dE: (2, T))
+    def split(held_err, held, t0, t1, sides, states):  # the time split on the sides' plans
         charge_first, then_high = order(held_err, held)
         first, then = first_then(charge_first, sides[0], sides[1])
         t0, t1 = split_sides(vp, first, then, pid, target, t0, t1, then_high)
-        # the scores of the sides' plans joined at t0 and t1 (slots 6, 7)
-        dE = jnp.stack([joined(t0, first, then), joined(t1, first, then)])
+        js = join_steps(vp, pred, lam, dt, pid, start, end, t0, t1,
+                        *first_then(charge_first, states[0], states[1]))
+        # the scores of the sides' plans joined there (slots 6, 7)
+        dE = jnp.stack([joined(js[0], first, then), joined(js[1], first, then)])
         e = jax.vmap(lambda d: piece_error(d, pid, target))(dE)
         e_held = jax.vmap(lambda d: held_piece_error(vp, d, pid, target))(dE)
-        return (t0, t1, held_err.at[6:].set(e_held), held.at[6:].set(jnp.abs(e_held - e)))
+        return (t0, t1, js, held_err.at[6:].set(e_held), held.at[6:].set(jnp.abs(e_held - e)))
 
     def step(i, c):
-        a, b, held_err, held, t0, t1, sides, states, _ = c
+        a, b, held_err, held, t0, t1, js, sides, states, _ = c
         # 0 the shift's bisection, 1 and 2 the sides, 3 the candidates, 4 the final plan
         phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_cand, p_final]))
         # the time split once, before the candidates (`i` is not batched, so under vmap this
         # and the cond below stay conds)
-        t0, t1, held_err, held = jax.lax.cond(
-            i == p_cand, split, lambda he, h, a, b, _: (a, b, he, h), held_err, held, t0, t1,
-            sides)
+        t0, t1, js, held_err, held = jax.lax.cond(
+            i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, he, h), held_err, held, t0,
+            t1, sides, states)
         lam_t = costate(phase, i, a, b, held_err, held, t0, t1)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,
-                    final_path(phase, held_err, held, t0, t1, states))
+                    final_path(phase, held_err, held, js, states))
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the
@@ -653,7 +689,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         s_slot = jnp.clip(slot, 0, 1)
         sides = jnp.where(side, sides.at[s_slot].set(dE), sides)
         states = jnp.where(side, states.at[s_slot].set(r.state), states)
-        return a, b, held_err, held, t0, t1, sides, states, (r, lam_t)
+        return a, b, held_err, held, t0, t1, js, sides, states, (r, lam_t)
 
     half = jnp.full((K,), 1.5, dtype)
     scores = jnp.zeros((8, K), dtype)
@@ -661,8 +697,8 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     out0 = (jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), r0),
             jnp.zeros((T,), dtype))
     c = jax.lax.fori_loop(0, p_final + 1, step,
-                          (-half, half, scores, scores, start, end, jnp.zeros((2, T), dtype),
-                           jnp.zeros((2, T), jnp.int32), out0))
+                          (-half, half, scores, scores, start, end, jnp.stack([start, end]),
+                           jnp.zeros((2, T), dtype), jnp.zeros((2, T), jnp.int32), out0))
     return c[-1]
 
 

@@ -19,7 +19,7 @@ from jaxems.io import load_route
 from jaxems.levels import battery as l2
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
-from jaxems.reference import ref_battery_path, ref_plan_energy
+from jaxems.reference import ref_battery_path, ref_level0_takes, ref_plan_energy
 
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
@@ -359,11 +359,73 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
                 assert ((e[p] > 0) == then_high[p]) == side, (p, ts)
 
 
+def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam):
+    """`strategies.join_steps` on PRED by a loop over the pieces: t0 and t1 where Level 0
+    takes the switch from s_first's state before the step into s_then's at it
+    (`ref_level0_takes`), else the nearest step before t0 / after t1 whose predecessor both run
+    in the same state (the piece's start / end at the latest). Returns [j0, j1], (K,) each."""
+    start, end = piece_bounds(pid, len(t0))
+    P_d, v, grade = (np.asarray(x) for x in (PRED.P_d, PRED.v, PRED.grade))
+    js = []
+    for ts, back in ((t0, True), (t1, False)):
+        j = np.array(ts)
+        for p, t in enumerate(ts):
+            if t <= start[p] or t >= end[p]:
+                continue
+            s_from, s_to = s_first[t - 1], s_then[t]
+            if s_from == s_to or ref_level0_takes(vp, s_from, s_to, max(P_d[t], 0.0), v[t],
+                                                  grade[t], lam[t]):
+                continue
+            steps = range(t, start[p] - 1, -1) if back else range(t, end[p] + 1)
+            j[p] = next(u for u in steps if u in (start[p], end[p])
+                        or s_first[u - 1] == s_then[u - 1])
+        js.append(j)
+    return js
+
+
+join = xla.jit(S.join_steps)
+
+
+def test_join_steps_equals_a_loop_and_finds_switches_level0_refuses():
+    """`join_steps` against `ref_join_steps` on random pairs of paths (runs of random states,
+    partly shared) over the short track at 20 t, split into three pieces, at random steps t0
+    (t1 = t0 + 1): the same steps, and some of the draws' switches Level 0 refuses."""
+    vp = VP.replace(mass=20000.0)
+    rng = np.random.default_rng(3)
+    n = int(np.sum(np.asarray(PRED.mask)))
+    refused = 0
+    for _ in range(12):
+        cuts = np.sort(rng.choice(np.arange(5, n - 5), 2, replace=False))
+        pid = np.searchsorted(cuts, np.arange(T), side="right").astype(np.int32)
+        start, end = piece_bounds(pid, 3)
+        paths = []
+        for _ in range(2):
+            st = np.zeros(T, np.int32)
+            for k in range(T):  # runs of states in M_c, M_e, M_m
+                new = k == 0 or rng.random() < 0.15
+                st[k] = rng.integers(0, 3) * 12 + rng.integers(2, 12) if new else st[k - 1]
+            paths.append(st)
+        share = rng.random(T) < 0.5  # steps where both run the same state
+        paths[1] = np.where(share, paths[0], paths[1])
+        t0 = np.array([rng.integers(a, b) if b > a else a for a, b in zip(start, end)])
+        t1 = np.minimum(t0 + 1, end)
+        lam = np.full(T, -2.0)
+        got = np.asarray(join(vp, PRED, jnp.asarray(lam), 1.0, jnp.asarray(pid),
+                              jnp.asarray(start, jnp.int32), jnp.asarray(end, jnp.int32),
+                              jnp.asarray(t0, jnp.int32), jnp.asarray(t1, jnp.int32),
+                              jnp.asarray(paths[0]), jnp.asarray(paths[1])))
+        want = ref_join_steps(vp, pid, t0, t1, paths[0], paths[1], lam)
+        np.testing.assert_array_equal(got, np.array(want))
+        refused += int(np.sum(got != np.stack([t0, t1])))
+    assert refused > 0  # the draws reach the fallback
+
+
 def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     """`sustaining_level1`'s DPs one by one, each its own call, the logic between them in NumPy:
     the shift's bisection, the two sides, the time split's bisection on their plans joined, the
     four candidates, and the sides' plans joined at the split as two more where no DP comes
-    as near. Returns (lambda_b (T,) of the final plan, the path (T,) of states a piece takes
+    as near (at t0 and t1 where Level 0 takes the switch there, else at the nearest step
+    before t0 / after t1 whose predecessor both sides run in the same state). Returns (lambda_b (T,) of the final plan, the path (T,) of states a piece takes
     from the sides' plans joined, -1 where it takes the final DP's, the number of DPs run)."""
     lo_b, hi_b = l2.LAM_BRACKET
     lam, pid, target = np.broadcast_to(lam, (T,)), np.asarray(pid), np.asarray(target)
@@ -405,7 +467,8 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         on = (e > 0) == then_high
         t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
     cands = [shifted(a), shifted(b), joined(t0, lams), joined(t1, lams)]
-    scores = [score(c)[1:3] for c in cands] + [score_dE(joined(t, dEs))[1:] for t in (t0, t1)]
+    js = ref_join_steps(VP, pid, t0, t1, *states, lam)
+    scores = [score(c)[1:3] for c in cands] + [score_dE(joined(j, dEs))[1:] for j in js]
     errs, held = np.array(scores).transpose(1, 0, 2)  # (6, K) each
     near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * VP.E_b_max
     best = np.empty(K, int)
@@ -413,7 +476,7 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         order = [c for c in range(6) if near[c, p] and (c < 4 or not near[:4, p].any())]
         best[p] = min(order, key=lambda c: held[c, p] + 1e-3 * abs(errs[c, p]))
     cands += cands[2:]
-    sides = np.where(best == 4, t0, t1)
+    sides = np.where(best == 4, js[0], js[1])
     path = np.where((best >= 4)[pid], joined(sides, states), -1)
     return np.array(cands)[best[pid], k], path, n_dp[0]
 
