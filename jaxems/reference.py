@@ -1393,6 +1393,12 @@ def _capable(f, c, E_b, P_need, dt, pb_plan=math.inf):
     return _deliverable(f, c, E_b, dt, pb_plan) >= P_need - 1e-6 * abs(P_need)
 
 
+def _speed_after_switch(f, v_op, F0):
+    """What Level 0 asks a state switched into to run at: v_op less road load's toll over the
+    longer open time (a mode and gear switch), at least 0.1 m/s."""
+    return max(v_op - max(F0, 0.0) * max(f.dt_M, f.dt_G) / f.mass, 0.1)
+
+
 def ref_level0_takes(vp: VehicleParams, s_from: int, s_to: int, P_need, v, grade, lam,
                      dt: float = 1.0, E_b=None) -> bool:
     """Whether Level 0 (`_protect`, as the plant's step calls it) keeps the switch from state
@@ -1401,8 +1407,7 @@ def ref_level0_takes(vp: VehicleParams, s_from: int, s_to: int, P_need, v, grade
     at what is left (at least 0.1 m/s); E_b: the battery's energy (None: full)."""
     f = _veh(vp)
     v = float(v)
-    F0 = float(road_load(f, v, float(grade)))
-    v_after = max(v - max(F0, 0.0) * max(f.dt_M, f.dt_G) / f.mass, 0.1)
+    v_after = _speed_after_switch(f, v, float(road_load(f, v, float(grade))))
     E = f.E_b_max if E_b is None else float(E_b)
     return _protect(f, vp, E, float(P_need), v, v_after, float(lam), int(s_to), int(s_from),
                     v <= 0, dt) == int(s_to)
@@ -1614,7 +1619,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         a_ref = (v_next - v_here) / dt
         P_follow = max(F0 + max(f.mass * a_ref, 0.0), 0.0) * v
         P_need = min(P_req, P_follow) if v > 0 else P_req
-        v_after = max(v_op - max(F0, 0.0) * t_open / f.mass, 0.1)
+        v_after = _speed_after_switch(f, v_op, F0)
         planned = bool(np.isfinite(c_pb[k]))
         # a plan holding the battery allows the motor its planned power in the engine's states
         pb_plan = float(c_pb[k]) if planned and not c_up[k] and c_l0[k] else math.inf

@@ -575,10 +575,11 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     E_b_max) with the battery held within its limits (`battery_path`: a plan that drains the
     battery below empty on the way ends higher in the plant than its sum says), the one whose
     battery the limits hold least on the way. Where no DP comes within that margin of the
-    sides' plans joined at the split (t0 or t1: what the time split's bisection met), the piece
-    takes those, not a DP's: the final plan's DP runs at their costate there, and its path is
-    replaced by theirs, so that the decisions, powers and switching costs (the switch where
-    they join included) are Level 1's on that path. On Regional Delivery (20 t, the second
+    sides' plans joined at the split (at t0 or t1, where the plant's Level 0 takes the switch
+    there, else where both run the same state: `join_steps`), the piece takes those, not a
+    DP's: the final plan's DP runs at their costate there, and its path is replaced by theirs,
+    so that the decisions, powers and switching costs (the switch where they join included)
+    are Level 1's on that path. On Regional Delivery (20 t, the second
     iteration) the last piece's joined DPs ended 0.47 MJ above its target and its discharging
     side 0.39 MJ below, where the sides' plans joined came within 0.02 MJ: the plan then ended
     0.13 MJ short after its trim, and the plant 4.1 % of the battery low. Where Level 1's
