@@ -678,6 +678,26 @@ def braking_route():
                                (1500, 0, 0, 5)], VP.replace(mass=20000.0))
 
 
+def test_only_the_iterations_last_plan_keeps_the_end_reserve():
+    """`braking_route` at 20 t (its final braking capped): with a reserve of a quarter of the
+    battery, multilevel's first iteration is the default's to the bit (the reserve is the last
+    plan's), and its last plan charges the battery above the start before the final braking,
+    which the default's 1 % does not, for more fuel; both end at their start (the cap)."""
+    route = braking_route()
+    vp = load_vehicle().replace(mass=20000.0)
+    size = float(vp.E_b_max)
+    E0 = float(vp.soc0) * size
+    runs = {x: S.simulate(route, vp, "multilevel", end_reserve=x) for x in (0.01, 0.25)}
+    first = {x: (float(r.extra.fuel_J[0]), float(r.extra.delta_Eb_J[0]))
+             for x, r in runs.items()}
+    assert first[0.25] == first[0.01]
+    assert float(np.max(runs[0.25].trace.E_b)) > E0 + 0.05 * size
+    assert float(np.max(runs[0.01].trace.E_b)) < E0 + 0.01 * size
+    assert runs[0.25]["fuel_J"] > runs[0.01]["fuel_J"]
+    for r in runs.values():
+        assert abs(r["delta_Eb_J"]) < 0.01 * size
+
+
 def test_final_braking_cap_sustains_the_baselines_charge():
     """`braking_route` at 20 t: the A-ECMS arrives at the final braking below its start's
     energy, and the braking would store more than that deficit (5.5 % of the battery). With
