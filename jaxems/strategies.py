@@ -621,19 +621,19 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def choice(held_err, held):  # (K,) each piece's candidate, 0-5 (slots 2-7 of the scores)
         errs, hs = held_err[2:], held[2:]  # (6, K)
         near = jnp.abs(errs) <= jnp.min(jnp.abs(errs), axis=0) + tol_rel * vp.E_b_max
-        # the sides' plans joined (4, 5) only where no DP comes as near
-        late = jnp.where(jnp.arange(6) >= 4, jnp.inf, 0.0)[:, None]
-        key = jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf)
-        return jnp.argmin(jnp.where(jnp.isfinite(jnp.min(key[:4], axis=0)), key + late, key),
-                          axis=0)
+        # the sides' plans joined (4, 5) only where no DP (0-3) comes as near
+        near = near & ((jnp.arange(6) < 4)[:, None] | ~jnp.any(near[:4], axis=0))
+        return jnp.argmin(jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
 
-    def costate(phase, i, a, b, held_err, held, t0, t1):  # (T,) the costate of DP number i
+    def costate(phase, i, a, b, held_err, held, t0, t1, js):  # (T,) the costate of DP i
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
         first, then = first_then(order(held_err, held)[0], ja, jb)
-        at0, at1 = joined(t0, first, then), joined(t1, first, then)
-        cands = jnp.stack([shifted(a), shifted(b), at0, at1, at0, at1])  # (6, T)
+        # the DPs' candidates (0-3), then the costates of the sides' plans joined where they
+        # are joined (4, 5: `join_steps`), at which the final DP evaluates their path
+        cands = jnp.stack([shifted(a), shifted(b)]
+                          + [joined(t, first, then) for t in (t0, t1, js[0], js[1])])
         return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb,
                                 cands[jnp.clip(i - p_cand, 0, 3)],
                                 cands[choice(held_err, held)[pid], k])
@@ -669,7 +669,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         t0, t1, js, held_err, held = jax.lax.cond(
             i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, he, h), held_err, held, t0,
             t1, sides, states)
-        lam_t = costate(phase, i, a, b, held_err, held, t0, t1)
+        lam_t = costate(phase, i, a, b, held_err, held, t0, t1, js)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,
                     final_path(phase, held_err, held, js, states))

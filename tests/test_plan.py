@@ -475,7 +475,7 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     for p in range(K):  # a DP that comes as near, the least held; else any
         order = [c for c in range(6) if near[c, p] and (c < 4 or not near[:4, p].any())]
         best[p] = min(order, key=lambda c: held[c, p] + 1e-3 * abs(errs[c, p]))
-    cands += cands[2:]
+    cands += [joined(j, lams) for j in js]
     sides = np.where(best == 4, js[0], js[1])
     path = np.where((best >= 4)[pid], joined(sides, states), -1)
     return np.array(cands)[best[pid], k], path, n_dp[0]
