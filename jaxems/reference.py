@@ -1215,14 +1215,15 @@ __all__ += ["ref_battery_path", "ref_braking_loss", "ref_plan_energy"]
 
 # ------------------------------------------------------------------------------ dp-bound
 class RefBound(NamedTuple):
-    """`ref_bound_dp`'s result: (T,) state path, candidate index and step cost (J, with the
-    switching cost), E_b(tf) (J), the value's slope at E_b(t0) in the first state (J/J) and
+    """`ref_bound_dp`'s result: (T,) state path, candidate index, step cost (J, with the
+    switching cost) and E_b at the step's start (J), E_b(tf) (J), the value's slope at E_b(t0) in the first state (J/J) and
     the value (J) at E_b(t0) before step 0 (of the start state; the least over states when
     the start is free)."""
 
     state: Any
     cand: Any
     cost: Any
+    E: Any
     E_end: float
     lam0: float
     value: float
@@ -1273,9 +1274,10 @@ def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, 
             Q = [q(V[k + 1], k, grid[i], s)[0] for s in range(S)]
             for sp in range(S):
                 V[k][i, sp] = min(min(C[k, sp, s] + Q[s] for s in range(S)), big)
-    state, cand, cost = (np.zeros(T, int), np.zeros(T, int), np.zeros(T))
+    state, cand, cost, E_path = (np.zeros(T, int), np.zeros(T, int), np.zeros(T), np.zeros(T))
     E, s = float(E0), int(s_init)
     for k in range(T):
+        E_path[k] = E
         if not mask[k]:
             state[k] = max(s, 0)
             s = state[k]
@@ -1304,7 +1306,32 @@ def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, 
     first = [q(V[1], 0, E0, s1)[0] + (C[0, s_init, s1] if s_init >= 0 else 0.0)
              for s1 in range(S)] if mask[0] else None
     value = float(min(first)) if first is not None else float("nan")
-    return RefBound(state=state, cand=cand, cost=cost, E_end=E, lam0=float(lam0), value=value)
+    return RefBound(state=state, cand=cand, cost=cost, E=E_path, E_end=E, lam0=float(lam0),
+                    value=value)
+
+
+def ref_bound_pieces(mask, E, E_end, d, goal, E_max, n_E, K):
+    """`strategies.bound_pieces` as a loop: walk the DP's path E (T,) (E_end after it), open
+    a new piece (at most K) at each counted step (mask (T,)) after the first where the path
+    comes within half a grid cell (E_max / (n_E - 1)) of a limit or leaves it (a step that
+    does not count is at none); add each counted step's change less its drift d (T,) to its
+    piece; the last piece also gets goal - E_end. Returns (pid (T,), target (K,))."""
+    E, d = np.asarray(E, float), np.asarray(d, float)
+    T = E.shape[0]
+    tol = 0.5 * E_max / (n_E - 1)
+    pid, target = np.zeros(T, int), np.zeros(K)
+    p, was = 0, None
+    for k in range(T):
+        at = bool(mask[k]) and (E[k] <= tol or E[k] >= E_max - tol)
+        if mask[k]:
+            if was is not None and at != was:
+                p = min(p + 1, K - 1)
+            nxt = E[k + 1] if k + 1 < T else E_end
+            target[p] += nxt - E[k] - d[k]
+        was = at
+        pid[k] = p
+    target[p] += goal - E_end
+    return pid, target
 
 
 def brute_bound(fuel, dEb, C, s_init, E0, E_max, goal, lam_end, penalty):

@@ -245,8 +245,45 @@ def test_bound_dp_equals_its_loops(seed, standing, pad, goal_frac, penalty, reac
     # the costate of each counted step's candidate (steps that do not count have none)
     np.testing.assert_array_equal(np.asarray(bp.lam)[mask], np.asarray(tab.lams)[ref.cand][mask])
     np.testing.assert_allclose(np.asarray(bp.cost), ref.cost, rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(bp.E), ref.E, rtol=1e-12, atol=1e-6)
     np.testing.assert_allclose(float(bp.E_end), ref.E_end, rtol=1e-12)
     np.testing.assert_allclose(float(bp.lam0), ref.lam0, rtol=1e-9, atol=1e-12)
+
+
+_bound_pieces = xla.jit(S_.bound_pieces, static_argnums=(6, 7))
+
+
+@settings(max_examples=40)
+@given(seed=st.integers(0, 2**31 - 1), pad=st.integers(0, 3), K=st.sampled_from([2, 3, 64]),
+       n_E=st.sampled_from([5, 101]))
+def test_bound_pieces_equal_their_loop(seed, pad, K, n_E):
+    """dp-bound's plan pieces (`bound_pieces`: the DP's path split where it reaches or leaves a
+    limit of the battery, within half a grid cell) equal their loop, on paths that dwell at
+    either limit, come near one without reaching it and change within a dwell: the piece of
+    each step and each piece's target (the path's change without the drift, the last one's
+    moved to the goal), also where the boundaries outnumber the K pieces; the targets sum to
+    the goal less the start and the drift of the steps that count."""
+    rng = np.random.default_rng(seed)
+    T = 40
+    E_max = float(_VP.E_b_max)
+    tol = 0.5 * E_max / (n_E - 1)
+    levels = np.array([0.0, 0.4 * tol, E_max, E_max - 0.9 * tol, 1.5 * tol, 0.5 * E_max])
+    E = np.where(rng.random(T) < 0.5, levels[rng.integers(0, 6, T)], rng.uniform(0, E_max, T))
+    E = np.repeat(E[::2], 2)[:T]  # dwell two steps at a level
+    E[0] = float(_VP.soc0) * E_max
+    mask = np.arange(T) < T - pad
+    E[~mask] = E[T - pad - 1] if pad else E[-1]
+    E_end = float(E[-1]) if pad else float(rng.uniform(0, E_max))
+    d = np.where(mask, rng.normal(0.0, 1e4, T), 0.0)
+    goal = float(rng.uniform(0.3, 0.7)) * E_max
+    pid, target = _bound_pieces(_VP, jnp.asarray(mask), jnp.asarray(E), jnp.asarray(E_end),
+                                jnp.asarray(d), jnp.asarray(goal), n_E, K)
+    ref_pid, ref_target = R.ref_bound_pieces(mask, E, E_end, d, goal, E_max, n_E, K)
+    np.testing.assert_array_equal(np.asarray(pid), ref_pid)
+    np.testing.assert_allclose(np.asarray(target), ref_target, rtol=1e-12, atol=1e-6)
+    assert float(np.sum(target)) == pytest.approx(goal - E[0] - float(np.sum(d[mask])),
+                                                  rel=1e-12, abs=1e-6)
+    assert np.all(np.diff(np.asarray(pid)) >= 0) and int(pid[-1]) < K
 
 
 @settings(max_examples=15)

@@ -447,6 +447,47 @@ def test_dp_bound_predicts_what_the_plant_burns(runs):
     assert abs(r["fuel_J"] - float(ex.fuel_dp_J)) / float(ex.fuel_dp_J) < 0.05
 
 
+def test_dp_bounds_plan_meets_its_path_where_it_reaches_the_limits():
+    """Long Haul at 20 t, dp-bound's first DP: its battery path reaches the battery's limits
+    again and again (19 pieces: `bound_pieces`). Its plan, trimmed to the path's changes
+    between those points, stays within 10 % of the battery of the path and asks for battery
+    power at an empty battery on at most a few steps. Trimmed as one piece to the route's end
+    (as before 2026-11-28), the plan left the path by more than half the battery, held at
+    empty where the path was not, and asked for battery power there on hundreds of steps: the
+    plant, which cannot give it, burned 9 MJ more than the DP's own model."""
+    from jaxems.switching import SwitchCostParams
+
+    route = load_route("LongHaul")
+    vp = load_vehicle().replace(mass=20000.0)
+    opts = S.resolve_options(S.Options(), vp)
+    n = S.steps_for_batch(route, vp, 1.0, "dp-bound", opts)
+    E0 = float(vp.soc0 * vp.E_b_max)
+
+    @xla.jit
+    def plans(vp, params):
+        pred = S.level3(route, vp, 1.0, n)
+        bp = S.bound_dp(vp, pred, S.bound_tables(vp, pred, 1.0, opts, params), E0,
+                        opts.dp_n_E, opts.dp_penalty)
+        mode, gear = bp.state // 12, bp.state % 12
+        zero = jnp.zeros_like(pred.v)
+        pieces = S.bound_pieces(vp, pred.mask, bp.E, bp.E_end, zero, E0, opts.dp_n_E)
+        one = S.single_piece(n, zero.dtype)
+        out = []
+        for pc in (pieces, one):
+            plan = S.make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, 1.0, opts, pc)
+            dE = S.steps_energy(vp, pred, mode, gear, plan.P_b, 1.0)
+            off = jnp.max(jnp.where(pred.mask, jnp.abs(plan.E_ref - bp.E), 0.0))
+            empty = jnp.sum(pred.mask & (plan.E_ref <= 1.0) & (dE < -1.0))
+            out.append((off, empty))
+        return jnp.max(pieces[0]) + 1, out
+
+    K, ((off, empty), (off1, empty1)) = plans(vp, SwitchCostParams())
+    size = float(vp.E_b_max)
+    assert int(K) >= 10
+    assert float(off) < 0.1 * size and int(empty) <= 5
+    assert float(off1) > 0.5 * size and int(empty1) > 100
+
+
 def test_bad_options_are_clear_errors(runs):
     with pytest.raises(ValueError, match="strategy"):
         S.simulate("short_track", VP, "eco")
