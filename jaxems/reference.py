@@ -1216,9 +1216,9 @@ __all__ += ["ref_battery_path", "ref_braking_loss", "ref_plan_energy"]
 # ------------------------------------------------------------------------------ dp-bound
 class RefBound(NamedTuple):
     """`ref_bound_dp`'s result: (T,) state path, candidate index, step cost (J, with the
-    switching cost) and E_b at the step's start (J), E_b(tf) (J), the value's slope at E_b(t0) in the first state (J/J) and
-    the value (J) at E_b(t0) before step 0 (of the start state; the least over states when
-    the start is free)."""
+    switching cost) and E_b at the step's start (J), E_b(tf) (J), the value's slope at
+    E_b(t0) in the first state (J/J) and the value (J) at E_b(t0) before step 0 (of the start
+    state; the least over states when the start is free)."""
 
     state: Any
     cand: Any

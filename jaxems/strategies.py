@@ -1404,8 +1404,8 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         Its decisions become a plan (battery power trimmed so that the plan's own model,
         which counts the synchronisation energy the DP does not see, meets the DP's path
         without the drift where it reaches or leaves the battery's limits, and ends where that
-        drift is made up: `bound_pieces`) that runs on the plant; the next attempt's Level 3 prediction has the engine at this
-        DP's speeds (as the iteration's)."""
+        drift is made up: `bound_pieces`) that runs on the plant; the next attempt's Level 3
+        prediction has the engine at this DP's speeds (as the iteration's)."""
         pred, drift, goal = carry
         track = pl.make_track(route, pred, opts.end_cap)
         tab = bound_tables(vp, pred, dt, opts, params)
