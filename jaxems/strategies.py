@@ -1359,17 +1359,18 @@ def _bound_costate(V, i0, dE):
     return jnp.clip(jnp.where(use_down, down, up), *l2.LAM_BRACKET)
 
 
-BOUND_PIECES = 64  # the most pieces of dp-bound's plan (`bound_pieces`)
+BOUND_PIECES = 64  # the most pieces of dp-bound's plan (`bound_pieces`), per 4096 steps
 
 
-def bound_pieces(vp, mask, E, E_end, d, goal, n_E: int, K: int = BOUND_PIECES):
+def bound_pieces(vp, mask, E, E_end, d, goal, n_E: int, K: int | None = None):
     """dp-bound's DP path as its plan's pieces (pid: (T,), target: (K,), as `piece_targets`
     gives Level 2's): a piece ends where the path reaches a limit of the battery or leaves it
     (within half a cell of the DP's E_b grid of n_E points), and its target is the DP's own
     change over it, without the drift d: (T,) its steps counted (`BoundTables.with_drift`);
     the last piece's is moved by goal - E_end, so that the plan ends where the DP was to. E:
     (T,) the DP's E_b at each step's start, E_end: its E_b(tf); mask: (T,) steps that count.
-    From the K-th boundary on, the last piece takes the rest.
+    From the K-th boundary on (default: BOUND_PIECES per 4096 steps, at least BOUND_PIECES;
+    the demo grid's paths need at most 41 on Long Haul) the last piece takes the rest.
 
     With the whole route as one piece, the plan's trim (`trim_battery_power`) spread what the
     plan's own model (the switches' synchronisation energy and open driveline, which the DP's
@@ -1379,6 +1380,8 @@ def bound_pieces(vp, mask, E, E_end, d, goal, n_E: int, K: int = BOUND_PIECES):
     plan asked for M_m with an empty battery for 2 km at a time, and the plant, which cannot,
     burned 9 MJ more than the DP's own model; the attempts' plant runs spread over 854-873 MJ
     (854.4-855.4 MJ with these pieces)."""
+    if K is None:
+        K = BOUND_PIECES * max(1, -(-E.shape[0] // 4096))
     tol = 0.5 * vp.E_b_max / (n_E - 1)
     at = mask & ((E <= tol) | (E >= vp.E_b_max - tol))
     edge = mask & (at != jnp.concatenate([at[:1], at[:-1]]))
