@@ -924,12 +924,18 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
         # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
         # drives on the motor or coasts, the estimate stays (a gear in which the engine cannot
         # run would forbid Level 2 the engine there)
-        w_new = jnp.where(engine_runs(pred, r1.mode), r1.w, w)
-        if repredict:
-            pred_new = repredict_level3(route, vp, dt, n_steps, pred, r1.mode, r1.w)
-        else:
-            pred_new = pred
-        return (pred_new, w_new, plant_drift(pred, plan, res)), (it, res, pred)
+        def feedback():
+            w_new = jnp.where(engine_runs(pred, r1.mode), r1.w, w)
+            if repredict:
+                pred_new = repredict_level3(route, vp, dt, n_steps, pred, r1.mode, r1.w)
+            else:
+                pred_new = pred
+            return pred_new, w_new, plant_drift(pred, plan, res)
+
+        # the last iteration's feedback has no next iteration (`i` is not batched: under vmap
+        # the cond stays one, and the last iteration skips Level 3 and the drift)
+        nxt = jax.lax.cond(i < opts.n_iter - 1, feedback, lambda: (pred, w, drift))
+        return nxt, (it, res, pred)
 
     w0 = jnp.full_like(pred0.v, vp.w_pred)
     _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0, no_drift(pred0)),
