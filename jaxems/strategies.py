@@ -868,12 +868,14 @@ def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
 
 
 class Iteration(NamedTuple):
-    """Per iteration of the multilevel scheme: fuel (J), delta E_b (J), lambda_b(t0)."""
+    """Per iteration of the multilevel scheme: fuel (J), delta E_b (J), lambda_b(t0), Level
+    2's status and the plan the plant ran (`Plan`; `experiments/plan_tracking.py` reads it)."""
 
     fuel_J: Any
     delta_Eb_J: Any
     lambda_b: Any
     costate_status: Any
+    plan: Any
 
 
 def run_multilevel(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
@@ -919,7 +921,7 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
             r1, lam1 = _level1(vp, pred, lam_g, dt, params, opts.same_open_time), lam_g
         plan = make_plan(vp, r1.mode, r1.gear, r1.P_b, lam1, pred, dt, opts, pieces)
         res = _run_plan(vp, track, pred, plan, n_plant, dt)
-        it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status)
+        it = Iteration(res.final.tot.fuel, res.final.E_b - res.E_b0, c2.lam0, c2.status, plan)
         # feed back the speed omega of Level 1's gears where the engine runs, to Level 2 (its
         # gear) and Level 3 (its traction limit assumes the engine at that speed); where Level 1
         # drives on the motor or coasts, the estimate stays (a gear in which the engine cannot
@@ -1131,7 +1133,7 @@ BIG = 1e15  # "infeasible" in the DP bound (finite, so that interpolation stays 
 
 class BoundExtra(NamedTuple):
     """dp-bound's own figures: the DP's predicted fuel (J), its E_b(tf) (J, counting the plant
-    drift it was given), the target it had, and the rollout."""
+    drift it was given), the target it had, the rollout, and the plan the plant ran."""
 
     fuel_dp_J: Any
     E_end_dp_J: Any
@@ -1139,6 +1141,7 @@ class BoundExtra(NamedTuple):
     mode: Any  # (T,)
     gear: Any  # (T,)
     lam: Any  # (T,) the costate whose Level 1 split was chosen at each step
+    plan: Any  # `Plan`
 
 
 def dp_candidate_lams(n: int):
@@ -1425,7 +1428,7 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         plan = make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, dt, opts, pieces)
         res = _run_plan(vp, track, pred, plan, plant_steps(n_steps, opts), dt)
         extra = BoundExtra(fuel_dp_J=jnp.sum(bp.cost), E_end_dp_J=bp.E_end, E_goal_J=goal,
-                           mode=mode, gear=gear, lam=bp.lam)
+                           mode=mode, gear=gear, lam=bp.lam, plan=plan)
         w = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), gear[:, None], axis=1)[:, 0]
         miss = res.final.E_b - res.E_b0
         nxt = (repredict_level3(route, vp, dt, n_steps, pred, mode, w),

@@ -1,5 +1,5 @@
-"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py, mpc_gap.py and
-random_routes.py: JSON structure, row arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py, mpc_gap.py,
+random_routes.py and plan_tracking.py: JSON structure, row arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -254,6 +254,39 @@ def test_mpc_gap_level1_at_a_given_costate_is_the_mpc(capsys):
     assert gap.main(["--h1", "0"]) == 1
     assert "--h1: expected comma-separated whole numbers >= 1" in capsys.readouterr().err
     assert gap.main(["--h1", "five"]) == 1
+
+
+@pytest.mark.parametrize("strategy", ["multilevel", "dp-bound"])
+def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, strategy):
+    """plan_tracking on the short track at 25 t with 2 MJ (both plans ask 0.35 MJ of an empty
+    battery on 15 steps): one JSON object; the stretches' plant fuel sums to the trace's, which
+    is the run's less the synchronisation energy the engine supplied (at most the run's),
+    their steps at empty to the summary's and to its runs', whose energy asked is the
+    summary's; every such step is one where the plan's battery is at empty and its own model
+    draws from it, as a loop over the plan finds them."""
+    track = _script("plan_tracking")
+    d, err = main_json(track, ["--route", "short_track", "--mass", "25000", "--battery-MJ", "2",
+                               "--strategy", strategy, "--segment-km", "0.3"], capsys)
+    assert f"plan_tracking: {strategy} on short_track" in err
+    sm, segs, runs = d["summary"], d["segments"], d["runs"]
+    assert sm["strategy"] == strategy and len(segs) == 4  # 1.05 km in stretches of 0.3
+    assert 1e6 * sum(g["plant_fuel_MJ"] for g in segs) == pytest.approx(sm["trace_fuel_J"],
+                                                                       rel=1e-9)
+    assert sm["trace_fuel_J"] <= sm["fuel_J"] and sm["trace_fuel_J"] > 0.95 * sm["fuel_J"]
+    assert sum(g["empty_steps"] for g in segs) == sm["empty_steps"] == sum(
+        r["steps"] for r in runs)
+    assert 1e6 * sum(r["asked_MJ"] for r in runs) == pytest.approx(sm["asked_at_empty_J"],
+                                                                   rel=1e-9, abs=1e-3)
+    assert sm["empty_steps"] > 0 and sm["asked_at_empty_J"] > 0
+    vp = load_vehicle().replace(mass=25000.0, E_b_max=2e6)
+    res = simulate("short_track", vp, strategy)
+    plan = track.last_plan(res)
+    dE = np.asarray(track.S.steps_energy(vp, res.prediction, plan.mode, plan.gear, plan.P_b,
+                                         1.0))
+    mask = np.asarray(res.prediction.mask)
+    n = sum(1 for k in range(mask.size)
+            if mask[k] and plan.E_ref[k] <= track.EMPTY_J and dE[k] < -track.EMPTY_J)
+    assert n == sm["empty_steps"]
 
 
 def test_control_map_refuses_a_gear_out_of_range(capsys):
