@@ -263,7 +263,7 @@ def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, str
     is the run's less the synchronisation energy the engine supplied (at most the run's),
     their steps at empty to the summary's and to its runs', whose energy asked is the
     summary's; every such step is one where the plan's battery is at empty and its own model
-    draws from it, as a loop over the plan finds them."""
+    draws from it, as a loop over the plan finds them; an unknown route is one line."""
     track = _script("plan_tracking")
     d, err = main_json(track, ["--route", "short_track", "--mass", "25000", "--battery-MJ", "2",
                                "--strategy", strategy, "--segment-km", "0.3"], capsys)
@@ -287,6 +287,11 @@ def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, str
     n = sum(1 for k in range(mask.size)
             if mask[k] and plan.E_ref[k] <= track.EMPTY_J and dE[k] < -track.EMPTY_J)
     assert n == sm["empty_steps"]
+    from jaxems.cli import script_main
+
+    capsys.readouterr()
+    assert script_main("plan_tracking", track.main, ["--route", "nowhere"]) == 1
+    assert "plan_tracking: error: nowhere: no such route file" in capsys.readouterr().err
 
 
 def test_control_map_refuses_a_gear_out_of_range(capsys):
