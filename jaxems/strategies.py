@@ -625,25 +625,23 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         near = near & ((jnp.arange(6) < 4)[:, None] | ~jnp.any(near[:4], axis=0))
         return jnp.argmin(jnp.where(near, hs + 1e-3 * jnp.abs(errs), jnp.inf), axis=0)
 
-    def costate(phase, i, a, b, held_err, held, t0, t1, js):  # (T,) the costate of DP i
+    def costate(phase, i, a, b, charge_first, best, t0, t1, js):  # (T,) the costate of DP i
         # either side of the jump, shifted apart so that the DP, which weighs switching costs
         # over the whole horizon, follows each side in its own part of the piece
         ja, jb = shifted(a - gap), shifted(b + gap)
-        first, then = first_then(order(held_err, held)[0], ja, jb)
+        first, then = first_then(charge_first, ja, jb)
         # the DPs' candidates (0-3), then the costates of the sides' plans joined where they
         # are joined (4, 5: `join_steps`), at which the final DP evaluates their path
         cands = jnp.stack([shifted(a), shifted(b)]
                           + [joined(t, first, then) for t in (t0, t1, js[0], js[1])])
         return jax.lax.select_n(phase, shifted(0.5 * (a + b)), ja, jb,
-                                cands[jnp.clip(i - p_cand, 0, 3)],
-                                cands[choice(held_err, held)[pid], k])
+                                cands[jnp.clip(i - p_cand, 0, 3)], cands[best[pid], k])
 
-    def final_path(phase, held_err, held, js, states):  # the DP's path -> the plan's path
+    def final_path(phase, charge_first, best, js, states):  # the DP's path -> the plan's path
         # a piece whose candidate is the sides' plans joined takes their states (the final
         # DP's costate there is theirs, so its decisions and costs are the sides'; its
         # switching costs count the switch where they join)
-        best = choice(held_err, held)
-        first, then = first_then(order(held_err, held)[0], states[0], states[1])
+        first, then = first_then(charge_first, states[0], states[1])
         use = (phase == 4) & (best >= 4)
         sides_path = joined(jnp.where(best == 4, js[0], js[1]), first, then)
         return lambda path: jnp.where(use[pid], sides_path, path)
@@ -669,10 +667,11 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         t0, t1, js, held_err, held = jax.lax.cond(
             i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, he, h), held_err, held, t0,
             t1, sides, states)
-        lam_t = costate(phase, i, a, b, held_err, held, t0, t1, js)
+        charge_first, best = order(held_err, held)[0], choice(held_err, held)
+        lam_t = costate(phase, i, a, b, charge_first, best, t0, t1, js)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,
-                    final_path(phase, held_err, held, js, states))
+                    final_path(phase, charge_first, best, js, states))
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the
@@ -893,6 +892,13 @@ def level1_targets(vp, pred, c2: l2.CostateResult, drift: Drift, opts: Options, 
     return lam_g, (pid, target.at[last].add(reserve))
 
 
+def _unless_last(i, n: int, feedback, carry):
+    """What step i (a scan's index, not batched) of n passes on to the next: feedback(), or on
+    the last step, which has no next, the carry unchanged (under vmap the cond stays one, and
+    the last step skips the work)."""
+    return jax.lax.cond(i < n - 1, feedback, lambda: carry)
+
+
 def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredict: bool) -> Run:
     """The iteration scheme from the prediction pred0; repredict (static): Level 3 re-predicts
     with Level 1's engine speed each iteration (else the speed profile stays pred0's)."""
@@ -934,10 +940,7 @@ def _iterate(route, vp, dt, n_steps: int, opts: Options, params, pred0, repredic
                 pred_new = pred
             return pred_new, w_new, plant_drift(pred, plan, res)
 
-        # the last iteration's feedback has no next iteration (`i` is not batched: under vmap
-        # the cond stays one, and the last iteration skips Level 3 and the drift)
-        nxt = jax.lax.cond(i < opts.n_iter - 1, feedback, lambda: (pred, w, drift))
-        return nxt, (it, res, pred)
+        return _unless_last(i, opts.n_iter, feedback, carry), (it, res, pred)
 
     w0 = jnp.full_like(pred0.v, vp.w_pred)
     _, (its, ress, preds) = jax.lax.scan(iteration, (pred0, w0, no_drift(pred0)),
@@ -1133,14 +1136,13 @@ BIG = 1e15  # "infeasible" in the DP bound (finite, so that interpolation stays 
 
 class BoundExtra(NamedTuple):
     """dp-bound's own figures: the DP's predicted fuel (J), its E_b(tf) (J, counting the plant
-    drift it was given), the target it had, the rollout, and the plan the plant ran."""
+    drift it was given), the target it had, and the plan the plant ran (its rollout: mode,
+    gear, the costate whose Level 1 split was chosen at each step, the trimmed battery
+    power)."""
 
     fuel_dp_J: Any
     E_end_dp_J: Any
     E_goal_J: Any  # the DP's target E_b(tf): E_b(t0), moved by what the last attempt missed
-    mode: Any  # (T,)
-    gear: Any  # (T,)
-    lam: Any  # (T,) the costate whose Level 1 split was chosen at each step
     plan: Any  # `Plan`
 
 
@@ -1428,13 +1430,16 @@ def run_dp_bound(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
         plan = make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, dt, opts, pieces)
         res = _run_plan(vp, track, pred, plan, plant_steps(n_steps, opts), dt)
         extra = BoundExtra(fuel_dp_J=jnp.sum(bp.cost), E_end_dp_J=bp.E_end, E_goal_J=goal,
-                           mode=mode, gear=gear, lam=bp.lam, plan=plan)
-        w = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), gear[:, None], axis=1)[:, 0]
-        miss = res.final.E_b - res.E_b0
-        nxt = (repredict_level3(route, vp, dt, n_steps, pred, mode, w),
-               plant_drift(pred, plan, res),
-               jnp.where(k >= 1, jnp.clip(goal - miss, 0.0, vp.E_b_max), goal))
-        return nxt, (res, bp.lam0, extra, pred)
+                           plan=plan)
+
+        def feedback():
+            w = jnp.take_along_axis(pt.shaft_speeds(vp, pred.v), gear[:, None], axis=1)[:, 0]
+            miss = res.final.E_b - res.E_b0
+            return (repredict_level3(route, vp, dt, n_steps, pred, mode, w),
+                    plant_drift(pred, plan, res),
+                    jnp.where(k >= 1, jnp.clip(goal - miss, 0.0, vp.E_b_max), goal))
+
+        return _unless_last(k, opts.dp_attempts, feedback, carry), (res, bp.lam0, extra, pred)
 
     init = (pred0, no_drift(pred0), jnp.asarray(E0, dtype))
     _, (ress, lam_dps, extras, preds) = jax.lax.scan(attempt, init,
