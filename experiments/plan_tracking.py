@@ -41,6 +41,8 @@ from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E
 
 PLANNED = ("multilevel", "dp-bound")
 EMPTY_J = 1.0  # a plan's battery "at empty": E_ref within this of 0 (J)
+# the split of each step's (mode, gear) at its costate: (vp, P_d, v, lam, mode, gear), (T,) each
+split_steps = jax.jit(jax.vmap(ps.split_state, in_axes=(None, 0, 0, 0, 0, 0)))
 
 
 def last_plan(res) -> S.Plan:
@@ -59,9 +61,8 @@ def tracking(res, vp, segment_m: float, dt: float = 1.0) -> dict:
     dE = np.asarray(S.steps_energy(vp, pred, jnp.asarray(plan.mode), jnp.asarray(plan.gear),
                                    jnp.asarray(plan.P_b), dt))
     empty = mask & (plan.E_ref <= EMPTY_J) & (dE < -EMPTY_J)
-    split = jax.jit(jax.vmap(ps.split_state, in_axes=(None, 0, 0, 0, 0, 0)))(
-        vp, pred.P_d, pred.v, jnp.asarray(plan.lam), jnp.asarray(plan.mode),
-        jnp.asarray(plan.gear))
+    split = split_steps(vp, pred.P_d, pred.v, jnp.asarray(plan.lam), jnp.asarray(plan.mode),
+                        jnp.asarray(plan.gear))
     # fuel of the steps that start before a position (the last stretch takes every step left)
     f_plan = np.concatenate([[0.0], np.cumsum(np.where(mask, np.asarray(split.P_f) * dt, 0.0))])
     f_plant = np.concatenate([[0.0], np.cumsum(np.asarray(tr.P_f) * dt)])
