@@ -3,7 +3,6 @@
 import pytest
 from repo_scripts import ROOT, load_script
 
-_PATH = ROOT / "benchmarks" / "bench_sweep.py"
 bs = load_script("benchmarks/bench_sweep.py")
 
 
@@ -40,7 +39,7 @@ def test_source_hash_names_the_files_and_their_bytes(tmp_path):
     (b / "x.py").write_text("x = 1\n")
     (b / "sub" / "y.py").rename(b / "y.py")
     assert bs.source_hash(b) != h  # the same bytes under another path
-    assert bs.code_version()["jaxems_sha256"] == bs.source_hash(_PATH.parents[1] / "jaxems")
+    assert bs.code_version()["jaxems_sha256"] == bs.source_hash(ROOT / "jaxems")
 
 
 cf = load_script("benchmarks/compare_fuel.py")

@@ -25,6 +25,7 @@ def _script(name):
 
 
 table7, table8, traces = _script("table7"), _script("table8"), _script("traces")
+plan_tracking = _script("plan_tracking")  # loaded once: its jitted split compiles once
 
 
 def main_json(script, args, capsys):
@@ -264,7 +265,7 @@ def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, str
     their steps at empty to the summary's and to its runs', whose energy asked is the
     summary's; every such step is one where the plan's battery is at empty and its own model
     draws from it, as a loop over the plan finds them; an unknown route is one line."""
-    track = _script("plan_tracking")
+    track = plan_tracking
     d, err = main_json(track, ["--route", "short_track", "--mass", "25000", "--battery-MJ", "2",
                                "--strategy", strategy, "--segment-km", "0.3"], capsys)
     assert f"plan_tracking: {strategy} on short_track" in err
