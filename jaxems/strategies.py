@@ -570,7 +570,14 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     cannot do what the plan does (on the short track's first climb the discharging side first
     emptied the battery, and the plant then cruised on the engine where the plan cruised on the
     motor: 7.42 MJ corrected against 7.27 with the charging side first, on the plant before its
-    mean gradient). Each piece then takes, of the candidates (the bracket's ends of the shift
+    mean gradient), unless Level 0 refuses the switch where that order joins them (both joins
+    fall back from the split, `join_steps`) and takes it where the other order joins them: on
+    the short track at 20 t with 4 MJ, the route one piece, the engine-first order joined
+    mid-climb from M_e into M_m in gear 5, which Level 0 refuses, both joins fell back to the
+    piece's ends, and the plan climbed on the motor alone, asking 0.42 MJ of an empty battery
+    (the plant ended 6.3 % of the battery low, 10.4 % above dp-bound on corrected fuel); the
+    motor first, the engine joins mid-climb (2.0 % low, 1.2 % above the bound). Each piece
+    then takes, of the candidates (the bracket's ends of the shift
     and of the time split, each a DP) whose end comes closest to its target (within tol_rel
     E_b_max) with the battery held within its limits (`battery_path`: a plan that drains the
     battery below empty on the way ends higher in the plant than its sum says), the one whose
@@ -646,28 +653,42 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         sides_path = joined(jnp.where(best == 4, js[0], js[1]), first, then)
         return lambda path: jnp.where(use[pid], sides_path, path)
 
+    def split_at(held_err, t0, t1, sides, states, charge_first):  # (t0, t1, js) of an order
+        then_high = jnp.where(charge_first, held_err[1], held_err[0]) > 0
+        t0, t1 = split_sides(vp, *first_then(charge_first, sides[0], sides[1]), pid, target, t0,
+                             t1, then_high)
+        return t0, t1, join_steps(vp, pred, lam, dt, pid, start, end, t0, t1,
+                                  *first_then(charge_first, states[0], states[1]))
+
     def split(held_err, held, t0, t1, sides, states):  # the time split on the sides' plans
-        charge_first, then_high = order(held_err, held)
+        # in the order the scores prefer, unless its joins both fall back from the split
+        # (Level 0 refuses the switch there) where the other order's do not
+        pref = order(held_err, held)[0]
+        at_pref, at_other = (split_at(held_err, t0, t1, sides, states, cf)
+                             for cf in (pref, ~pref))
+        joins = lambda s: (s[2][0] == s[0]) | (s[2][1] == s[1])  # noqa: E731
+        flip = ~joins(at_pref) & joins(at_other)
+        t0, t1, js = jax.tree_util.tree_map(lambda x, y: jnp.where(flip, y, x), at_pref,
+                                            at_other)
+        charge_first = pref ^ flip
         first, then = first_then(charge_first, sides[0], sides[1])
-        t0, t1 = split_sides(vp, first, then, pid, target, t0, t1, then_high)
-        js = join_steps(vp, pred, lam, dt, pid, start, end, t0, t1,
-                        *first_then(charge_first, states[0], states[1]))
         # the scores of the sides' plans joined there (slots 6, 7)
         dE = jnp.stack([joined(js[0], first, then), joined(js[1], first, then)])
         e = jax.vmap(lambda d: piece_error(d, pid, target))(dE)
         e_held = jax.vmap(lambda d: held_piece_error(vp, d, pid, target))(dE)
-        return (t0, t1, js, held_err.at[6:].set(e_held), held.at[6:].set(jnp.abs(e_held - e)))
+        return (t0, t1, js, flip, held_err.at[6:].set(e_held),
+                held.at[6:].set(jnp.abs(e_held - e)))
 
     def step(i, c):
-        a, b, held_err, held, t0, t1, js, sides, states, _ = c
+        a, b, held_err, held, t0, t1, js, flip, sides, states, _ = c
         # 0 the shift's bisection, 1 and 2 the sides, 3 the candidates, 4 the final plan
         phase = jnp.sum(i >= jnp.array([p_side, p_side + 1, p_cand, p_final]))
         # the time split once, before the candidates (`i` is not batched, so under vmap this
         # and the cond below stay conds)
-        t0, t1, js, held_err, held = jax.lax.cond(
-            i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, he, h), held_err, held, t0,
-            t1, sides, states)
-        charge_first, best = order(held_err, held)[0], choice(held_err, held)
+        t0, t1, js, flip, held_err, held = jax.lax.cond(
+            i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, flip, he, h), held_err, held,
+            t0, t1, sides, states)
+        charge_first, best = order(held_err, held)[0] ^ flip, choice(held_err, held)
         lam_t = costate(phase, i, a, b, charge_first, best, t0, t1, js)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,
@@ -689,7 +710,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         s_slot = jnp.clip(slot, 0, 1)
         sides = jnp.where(side, sides.at[s_slot].set(dE), sides)
         states = jnp.where(side, states.at[s_slot].set(r.state), states)
-        return a, b, held_err, held, t0, t1, js, sides, states, (r, lam_t)
+        return a, b, held_err, held, t0, t1, js, flip, sides, states, (r, lam_t)
 
     half = jnp.full((K,), 1.5, dtype)
     scores = jnp.zeros((8, K), dtype)
@@ -698,7 +719,8 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
             jnp.zeros((T,), dtype))
     c = jax.lax.fori_loop(0, p_final + 1, step,
                           (-half, half, scores, scores, start, end, jnp.stack([start, end]),
-                           jnp.zeros((2, T), dtype), jnp.zeros((2, T), jnp.int32), out0))
+                           jnp.zeros((K,), bool), jnp.zeros((2, T), dtype),
+                           jnp.zeros((2, T), jnp.int32), out0))
     return c[-1]
 
 

@@ -3,6 +3,9 @@ targets, the plan's battery energy within the limits, and the plant-drift compen
 (strategies.trim_battery_power, piece_targets, battery_path, compensate), Level 1's costate
 at Level 2's guards (guard_lambda), on the short track at 25 t against plain loops."""
 
+import functools
+from typing import Any, NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,23 +27,48 @@ from jaxems.reference import ref_battery_path, ref_level0_takes, ref_plan_energy
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
 PARAMS = sw.SwitchCostParams()
-# Level 3 on the short track, a Level 1 plan at lambda_b = -2 on it, and two pieces (split at
-# MID): set by the module fixture `_short_track`, on first use. At import, every xdist worker
-# computed them while collecting, whether it ran this file or not.
-PRED = R1 = T = MID = PID = None
-level1 = xla.jit(lambda lam_t: S._level1(VP, PRED, lam_t, 1.0, PARAMS))  # lam_t: (T,)
-# Level 1's decisions on the path `sides` (T,) where it is >= 0, the DP's elsewhere
-level1_path = xla.jit(lambda lam_t, sides: S._level1(
-    VP, PRED, lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p)))
+VP20 = VP.replace(mass=20000.0)
+# Level 3 on the short track (PRED20: at 20 t, as many steps), a Level 1 plan at lambda_b = -2
+# on it, and two pieces (split at MID): set by the module fixture `_short_track`, on first use.
+# At import, every xdist worker computed them while collecting, whether it ran this file or not.
+PRED = PRED20 = R1 = T = MID = PID = None
+
+
+class Kernels(NamedTuple):
+    """The jitted kernels of one vehicle on its Level 3 (VP on PRED, VP20 on PRED20), the
+    vehicle a constant of each program."""
+
+    vp: Any
+    pred: Any
+    level1: Any  # lam_t (T,) -> Level 1's plan
+    level1_path: Any  # (lam_t, sides (T,)): the decisions on `sides` where >= 0, else the DP's
+    energy: Any  # (mode, gear, P_b) -> (T,) the steps' battery energy
+    sustain: Any  # (lam, pid, target) -> `sustaining_level1`
+
+
+@functools.cache
+def kernels(mass) -> Kernels:
+    """`Kernels` at VP's mass or at VP20's (one compilation each; the programs are those the
+    tests compared with their loops before VP20 joined them)."""
+    vp, pred = (VP, lambda: PRED) if mass == float(VP.mass) else (VP20, lambda: PRED20)
+    return Kernels(
+        vp, pred(),
+        xla.jit(lambda lam_t: S._level1(vp, pred(), lam_t, 1.0, PARAMS)),
+        xla.jit(lambda lam_t, sides: S._level1(
+            vp, pred(), lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p))),
+        xla.jit(lambda mode, gear, P_b: S.steps_energy(vp, pred(), mode, gear, P_b, 1.0)),
+        xla.jit(lambda lam, pid, target: S.sustaining_level1(vp, pred(), lam, 1.0, PARAMS, pid,
+                                                             target)))
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _short_track():
-    global PRED, R1, T, MID, PID
+    global PRED, PRED20, R1, T, MID, PID
     n = S.steps_for_batch(ROUTE, VP)
-    PRED = xla.jit(lambda r, v: S.level3(r, v, 1.0, n))(ROUTE, VP)
+    level3 = xla.jit(lambda r, v: S.level3(r, v, 1.0, n))
+    PRED, PRED20 = level3(ROUTE, VP), level3(ROUTE, VP20)
     T = PRED.v.shape[0]
-    R1 = level1(jnp.full(T, -2.0))  # the compilation test_sustaining_level1_... uses
+    R1 = kernels(float(VP.mass)).level1(jnp.full(T, -2.0))  # the compilation the loop test uses
     MID = int(np.sum(np.asarray(PRED.mask))) // 2
     PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
 
@@ -271,10 +299,6 @@ def test_plan_expects_its_own_battery_path_across_pieces():
     assert abs(restarted[MID] - own[MID]) > 1e4  # the case: the first piece misses its end
 
 
-energy = xla.jit(lambda mode, gear, P_b: S.steps_energy(VP, PRED, mode, gear, P_b, 1.0))
-sustain = xla.jit(lambda lam, pid, target: S.sustaining_level1(VP, PRED, lam, 1.0, PARAMS, pid,
-                                                               target))
-
 
 def piece_bounds(pid, K):
     """(start, end) (K,) of each piece's steps in pid (T,): its first step and one past its
@@ -359,13 +383,14 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
                 assert ((e[p] > 0) == then_high[p]) == side, (p, ts)
 
 
-def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam):
-    """`strategies.join_steps` on PRED by a loop over the pieces: t0 and t1 where Level 0
+def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam, pred=None):
+    """`strategies.join_steps` on pred (PRED) by a loop over the pieces: t0 and t1 where Level 0
     takes the switch from s_first's state before the step into s_then's at it
     (`ref_level0_takes`), else the nearest step before t0 / after t1 whose predecessor both run
     in the same state (the piece's start / end at the latest). Returns [j0, j1], (K,) each."""
     start, end = piece_bounds(pid, len(t0))
-    P_d, v, grade = (np.asarray(x) for x in (PRED.P_d, PRED.v, PRED.grade))
+    pred = PRED if pred is None else pred
+    P_d, v, grade = (np.asarray(x) for x in (pred.P_d, pred.v, pred.grade))
     js = []
     for ts, back in ((t0, True), (t1, False)):
         j = np.array(ts)
@@ -420,18 +445,22 @@ def test_join_steps_equals_a_loop_and_finds_switches_level0_refuses():
     assert refused > 0  # the draws reach the fallback
 
 
-def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
+def loop_sustaining(kern: Kernels, lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     """`sustaining_level1`'s DPs one by one, each its own call, the logic between them in NumPy:
     the shift's bisection, the two sides, the time split's bisection on their plans joined, the
     four candidates, and the sides' plans joined at the split as two more where no DP comes
     as near (at t0 and t1 where Level 0 takes the switch there, else at the nearest step
-    before t0 / after t1 whose predecessor both sides run in the same state). Returns (lambda_b (T,) of the final plan, the path (T,) of states a piece takes
-    from the sides' plans joined, -1 where it takes the final DP's, the number of DPs run)."""
+    before t0 / after t1 whose predecessor both sides run in the same state); the sides in
+    the order their scores prefer, unless both its joins fall back from the split and the
+    other order's do not. Returns (lambda_b (T,) of the final plan, the path (T,) of states a
+    piece takes from the sides' plans joined, -1 where it takes the final DP's, the number of
+    DPs run, the pieces (K,) whose sides' order the joins turned)."""
     lo_b, hi_b = l2.LAM_BRACKET
     lam, pid, target = np.broadcast_to(lam, (T,)), np.asarray(pid), np.asarray(target)
     K = target.shape[0]
     n_dp = [0]
-    E0, E_max = VP.soc0 * VP.E_b_max, VP.E_b_max
+    vp, pred = kern.vp, kern.pred
+    E0, E_max = vp.soc0 * vp.E_b_max, vp.E_b_max
 
     def score_dE(dE):  # (error, held error, what the limits hold)
         e = np.bincount(pid, dE, K) - target
@@ -439,8 +468,8 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         return e, E_end - goal, np.abs(E_end - goal - e)
 
     def score(lam_t):  # score_dE's, the plan's steps' energy and states
-        r = level1(jnp.asarray(lam_t))
-        dE = np.asarray(energy(r.mode, r.gear, r.P_b))
+        r = kern.level1(jnp.asarray(lam_t))
+        dE = np.asarray(kern.energy(r.mode, r.gear, r.P_b))
         n_dp[0] += 1
         return (*score_dE(dE), dE, np.asarray(r.state))
 
@@ -452,25 +481,35 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
         a, b = np.where(pos, m, a), np.where(pos, b, m)
     ja, jb = shifted(a - gap), shifted(b + gap)
     (_, e_a, h_a, dE_a, st_a), (_, e_b, h_b, dE_b, st_b) = score(ja), score(jb)
-    charge_first = h_b > h_a
-    then_high = np.where(charge_first, e_b, e_a) > 0
     k = np.arange(T)
     # (first, then) of the sides' costates, plans' energies and states
-    first_then = lambda x, y: (np.where(charge_first[pid], x, y),  # noqa: E731
-                               np.where(charge_first[pid], y, x))
+    first_then = lambda cf, x, y: (np.where(cf[pid], x, y), np.where(cf[pid], y, x))  # noqa: E731
     joined = lambda ts, xy: np.where(k < ts[pid], xy[0], xy[1])  # noqa: E731
-    lams, dEs, states = first_then(ja, jb), first_then(dE_a, dE_b), first_then(st_a, st_b)
-    t0, t1 = piece_bounds(pid, K)
-    for _ in range(S._split_bisections(T)):
-        m = (t0 + t1) // 2
-        e = ref_joined_error(*dEs, pid, target, m, E0, E_max)
-        on = (e > 0) == then_high
-        t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
+
+    def split(charge_first):  # the time split and its joins, the sides in this order
+        then_high = np.where(charge_first, e_b, e_a) > 0
+        dEs = first_then(charge_first, dE_a, dE_b)
+        t0, t1 = piece_bounds(pid, K)
+        for _ in range(S._split_bisections(T)):
+            m = (t0 + t1) // 2
+            e = ref_joined_error(*dEs, pid, target, m, E0, E_max)
+            on = (e > 0) == then_high
+            t0, t1 = np.where(on, m, t0), np.where(on, t1, m)
+        js = ref_join_steps(vp, pid, t0, t1, *first_then(charge_first, st_a, st_b), lam, pred)
+        return t0, t1, js, (js[0] == t0) | (js[1] == t1)
+
+    pref = h_b > h_a
+    (t0, t1, js, at_pref), (u0, u1, us, at_other) = split(pref), split(~pref)
+    flip = ~at_pref & at_other
+    t0, t1 = np.where(flip, u0, t0), np.where(flip, u1, t1)
+    js = [np.where(flip, u, j) for u, j in zip(us, js)]
+    charge_first = pref ^ flip
+    lams, dEs, states = (first_then(charge_first, *xy) for xy in ((ja, jb), (dE_a, dE_b),
+                                                                   (st_a, st_b)))
     cands = [shifted(a), shifted(b), joined(t0, lams), joined(t1, lams)]
-    js = ref_join_steps(VP, pid, t0, t1, *states, lam)
     scores = [score(c)[1:3] for c in cands] + [score_dE(joined(j, dEs))[1:] for j in js]
     errs, held = np.array(scores).transpose(1, 0, 2)  # (6, K) each
-    near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * VP.E_b_max
+    near = np.abs(errs) <= np.abs(errs).min(axis=0) + tol_rel * vp.E_b_max
     best = np.empty(K, int)
     for p in range(K):  # a DP that comes as near, the least held; else any
         order = [c for c in range(6) if near[c, p] and (c < 4 or not near[:4, p].any())]
@@ -478,28 +517,36 @@ def loop_sustaining(lam, pid, target, n_bisect=14, gap=0.05, tol_rel=2.5e-3):
     cands += [joined(j, lams) for j in js]
     sides = np.where(best == 4, js[0], js[1])
     path = np.where((best >= 4)[pid], joined(sides, states), -1)
-    return np.array(cands)[best[pid], k], path, n_dp[0]
+    return np.array(cands)[best[pid], k], path, n_dp[0], flip
 
 
 @pytest.mark.skipif(jax.default_backend() != "cpu", reason="on a GPU its DPs run one by one "
                     "(separate programs) round apart from the one loop, and its bisections "
                     "decide on signs of piece errors that are zero up to rounding (seen: "
                     "costates 0.05 apart, the gap)")
-@pytest.mark.parametrize("target", [(0.0, 0.0), (-4e5, 3e5), (6e5, -9e5)])
-def test_sustaining_level1_equals_its_dps_run_one_by_one(target):
+@pytest.mark.parametrize("mass, target", [(25e3, (0.0, 0.0)), (25e3, (-4e5, 3e5)),
+                                          (25e3, (6e5, -9e5)), (20e3, (0.0,))])
+def test_sustaining_level1_equals_its_dps_run_one_by_one(mass, target):
     """The one loop of `sustaining_level1` (one DP in its body) against its phases run one
     by one: the same costate, decisions and DP count. At (-4e5, 3e5) the first piece takes
-    the sides' plans joined (no DP comes as near its target)."""
+    the sides' plans joined (no DP comes as near its target). At 20 t, the route one piece,
+    the sides' preferred order (the engine first) joins mid-climb into M_m, which Level 0
+    refuses, so that both joins fall back to the piece's ends; the other order's join is
+    taken, and the sides' plans joined in that order meet the target."""
+    kern = kernels(mass)
+    pid = PID if len(target) == 2 else jnp.zeros(T, jnp.int32)
     lam = jnp.full(T, -2.0)
-    r, lam_t = sustain(lam, PID, jnp.asarray(target, float))
-    want, sides, n_dp = loop_sustaining(-2.0, PID, target)
+    r, lam_t = kern.sustain(lam, pid, jnp.asarray(target, float))
+    want, sides, n_dp, flip = loop_sustaining(kern, -2.0, pid, target)
     if target == (-4e5, 3e5):  # the case covers the sides' plans joined
-        assert np.all(sides[np.asarray(PID) == 0] >= 0)
+        assert np.all(sides[np.asarray(pid) == 0] >= 0)
+    if mass != VP.mass:  # ... and their order turned
+        assert flip[0] and np.all(sides >= 0)
     assert n_dp + 1 == S.sustaining_dps(T)  # and the final plan's
     np.testing.assert_allclose(np.asarray(lam_t), want, rtol=1e-12, atol=1e-12)
     # the final plan as Level 1 alone gives it, switching costs included, on the path the
     # pieces take: the final DP's, or the sides' plans joined
-    r_want = level1_path(jnp.asarray(want), jnp.asarray(sides))
+    r_want = kern.level1_path(jnp.asarray(want), jnp.asarray(sides))
     np.testing.assert_array_equal(np.asarray(r.state), np.asarray(r_want.state))
     for f in ("P_b", "P_f", "switch_cost", "cost"):
         np.testing.assert_allclose(np.asarray(getattr(r, f)), np.asarray(getattr(r_want, f)),
