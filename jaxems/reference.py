@@ -1334,6 +1334,37 @@ def ref_bound_pieces(mask, E, E_end, d, goal, E_max, n_E, K):
     return pid, target
 
 
+def ref_excursion_pieces(E0, E_max, dE, pid, target, share=0.01):
+    """`strategies.excursion_pieces` as a loop over each piece's steps: walk its path from
+    where the targets put its start (E0 plus the targets before it, within [0, E_max]) without
+    the limits; at the first step whose end lies furthest beyond a limit, if that is more than
+    share * E_max and not the piece's last step, end the piece there at
+    clip(goal - what the rest of the piece adds, 0, E_max) (goal: where the targets put the
+    piece's end, within the limits) and give the rest its steps and target. Returns (pid (T,),
+    target (2K,)): piece p's parts are 2p and 2p + 1."""
+    dE, pid, target = np.asarray(dE, float), np.asarray(pid), np.asarray(target, float)
+    K, T = target.shape[0], dE.shape[0]
+    new_pid, new_target = 2 * pid, np.zeros(2 * K)
+    cum = E0 + np.cumsum(target)
+    for p in range(K):
+        steps = [k for k in range(T) if pid[k] == p]
+        new_target[2 * p] = target[p]
+        start = min(max(cum[p] - target[p], 0.0), E_max)
+        goal = min(max(cum[p], 0.0), E_max)
+        E, worst, t_s = start, -np.inf, None
+        for k in steps:
+            E += dE[k]
+            if max(-E, E - E_max) > worst:
+                worst, t_s = max(-E, E - E_max), k
+        if not steps or worst <= share * E_max or t_s == steps[-1]:
+            continue
+        rest = [k for k in steps if k > t_s]
+        t1 = min(max(goal - sum(dE[k] for k in rest), 0.0), E_max) - start
+        new_target[2 * p], new_target[2 * p + 1] = t1, target[p] - t1
+        new_pid[rest] = 2 * p + 1
+    return new_pid, new_target
+
+
 def brute_bound(fuel, dEb, C, s_init, E0, E_max, goal, lam_end, penalty):
     """The least total cost (J) of dp-bound's problem by enumerating every sequence of states
     and candidates (T steps, every step counts): the fuel and switching costs plus the terminal

@@ -22,7 +22,8 @@ from jaxems.io import load_route
 from jaxems.levels import battery as l2
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
-from jaxems.reference import ref_battery_path, ref_level0_takes, ref_plan_energy
+from jaxems.reference import (ref_battery_path, ref_excursion_pieces, ref_level0_takes,
+                              ref_plan_energy)
 
 VP = load_vehicle().replace(mass=25000.0)
 ROUTE = load_route("short_track")
@@ -278,7 +279,8 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery(target):
 
 plan_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
                                                   jnp.asarray(-2.0), PRED, 1.0,
-                                                  S.make_options(None), (PID, target)))
+                                                  S.make_options(trim_excursions=False),
+                                                  (PID, target)))
 
 
 def test_plan_expects_its_own_battery_path_across_pieces():
@@ -297,6 +299,66 @@ def test_plan_expects_its_own_battery_path_across_pieces():
     np.testing.assert_allclose(np.asarray(plan.E_ref), own, rtol=1e-9, atol=1e-6)
     restarted = ref_battery_path(E0, E_max, dE, pid, target)[0]
     assert abs(restarted[MID] - own[MID]) > 1e4  # the case: the first piece misses its end
+
+
+excursions = xla.jit(S.excursion_pieces)
+
+
+@settings(max_examples=40, deadline=None)
+@given(hst.data())
+def test_excursion_pieces_equal_their_loop(data):
+    """`excursion_pieces` against the loop (`ref_excursion_pieces`) on random plans that leave
+    the battery's limits: the same steps in each part, the same targets; each piece's parts
+    sum to its target, and a split piece's first part ends within the limits."""
+    n, K = SPLIT_T, SPLIT_K
+    E_max = 2e6
+    vp = VP.replace(E_b_max=E_max, soc0=0.5)
+    cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
+    pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
+    floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
+        hst.floats(lo, hi, allow_nan=False, allow_subnormal=False), min_size=m, max_size=m)))
+    dE = floats(-4e5, 4e5, n)
+    target = floats(-1.5e6, 1.5e6, K)
+    got_pid, got_target = (np.asarray(x) for x in excursions(
+        vp, jnp.asarray(dE), jnp.asarray(pid), jnp.asarray(target)))
+    want_pid, want_target = ref_excursion_pieces(0.5 * E_max, E_max, dE, pid, target)
+    np.testing.assert_array_equal(got_pid, want_pid)
+    np.testing.assert_allclose(got_target, want_target, rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(got_target[0::2] + got_target[1::2], target, rtol=1e-12,
+                               atol=1e-6)
+    assert np.all(np.diff(got_pid) >= 0)
+    start = np.clip(0.5 * E_max + np.cumsum(target) - target, 0.0, E_max)
+    split = np.isin(2 * np.arange(K) + 1, got_pid)
+    assert np.all((start + got_target[0::2] >= -1e-6)[split])
+    assert np.all((start + got_target[0::2] <= E_max + 1e-6)[split])
+
+
+plan_split_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
+                                                        jnp.asarray(-2.0), PRED, 1.0,
+                                                        S.make_options(None), (PID, target)))
+
+
+def test_plan_split_at_its_excursion_asks_less_of_an_empty_battery():
+    """With a battery the plan leaves within its first piece, the trim on the pieces split at
+    the plan's excursions (`excursion_pieces`) asks less energy of an empty battery (steps
+    whose held energy is at empty that still draw from it) than the trim on the pieces alone,
+    and the pieces still end where the targets put them."""
+    E_max = 0.35e6
+    vp = VP.replace(E_b_max=E_max)
+    E0 = float(vp.soc0) * E_max
+    target = np.asarray([-0.1e6, 0.05e6])
+    pid = np.asarray(PID)
+
+    def asked(plan):  # (energy asked of an empty battery, the pieces' held end errors)
+        dE = step_energy(np.asarray(plan.P_b))
+        E, E_end, goal = ref_battery_path(E0, E_max, dE, pid, target)
+        return float(-np.sum(np.where((E <= 1.0) & (dE < 0), dE, 0.0))), E_end - goal
+
+    (a_plain, e_plain), (a_split, e_split) = (asked(f(vp, jnp.asarray(target)))
+                                              for f in (plan_vp, plan_split_vp))
+    assert a_plain > 1e4  # the case: the plain trim's plan draws from an empty battery
+    assert a_split < 0.5 * a_plain, (a_split, a_plain)
+    assert np.all(np.abs(e_split) <= np.abs(e_plain) + 1.0), (e_split, e_plain)
 
 
 
