@@ -301,38 +301,6 @@ def test_plan_expects_its_own_battery_path_across_pieces():
     assert abs(restarted[MID] - own[MID]) > 1e4  # the case: the first piece misses its end
 
 
-excursions = xla.jit(S.excursion_pieces)
-
-
-@settings(max_examples=40, deadline=None)
-@given(hst.data())
-def test_excursion_pieces_equal_their_loop(data):
-    """`excursion_pieces` against the loop (`ref_excursion_pieces`) on random plans that leave
-    the battery's limits: the same steps in each part, the same targets; each piece's parts
-    sum to its target, and a split piece's first part ends within the limits."""
-    n, K = SPLIT_T, SPLIT_K
-    E_max = 2e6
-    vp = VP.replace(E_b_max=E_max, soc0=0.5)
-    cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
-    pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
-    floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
-        hst.floats(lo, hi, allow_nan=False, allow_subnormal=False), min_size=m, max_size=m)))
-    dE = floats(-4e5, 4e5, n)
-    target = floats(-1.5e6, 1.5e6, K)
-    got_pid, got_target = (np.asarray(x) for x in excursions(
-        vp, jnp.asarray(dE), jnp.asarray(pid), jnp.asarray(target)))
-    want_pid, want_target = ref_excursion_pieces(0.5 * E_max, E_max, dE, pid, target)
-    np.testing.assert_array_equal(got_pid, want_pid)
-    np.testing.assert_allclose(got_target, want_target, rtol=1e-12, atol=1e-6)
-    np.testing.assert_allclose(got_target[0::2] + got_target[1::2], target, rtol=1e-12,
-                               atol=1e-6)
-    assert np.all(np.diff(got_pid) >= 0)
-    start = np.clip(0.5 * E_max + np.cumsum(target) - target, 0.0, E_max)
-    split = np.isin(2 * np.arange(K) + 1, got_pid)
-    assert np.all((start + got_target[0::2] >= -1e-6)[split])
-    assert np.all((start + got_target[0::2] <= E_max + 1e-6)[split])
-
-
 plan_split_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
                                                         jnp.asarray(-2.0), PRED, 1.0,
                                                         S.make_options(None), (PID, target)))
@@ -404,6 +372,17 @@ SPLIT_T, SPLIT_K = 40, 3
 split = xla.jit(S.split_sides)
 
 
+def draw_pieces(data):
+    """A random case of SPLIT_T steps in SPLIT_K pieces: (n, K, E_max, the vehicle with that
+    battery at half charge, pid (n,) cut at random, floats(lo, hi, m): m drawn floats)."""
+    n, K, E_max = SPLIT_T, SPLIT_K, 2e6
+    cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
+    pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
+    floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
+        hst.floats(lo, hi, allow_nan=False, allow_subnormal=False), min_size=m, max_size=m)))
+    return n, K, E_max, VP.replace(E_b_max=E_max, soc0=0.5), pid, floats
+
+
 @settings(max_examples=40, deadline=None)
 @given(hst.data())
 def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
@@ -411,13 +390,7 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
     at least as much as the other's, so that the joined end is monotone in t_s; with sides in
     any order, it still ends on a crossing: t1 = t0 + 1 (a piece of steps), t0 on `then`'s side
     (or the piece's start), t1 not (or the piece's end)."""
-    n, K = SPLIT_T, SPLIT_K
-    E_max = 2e6
-    vp = VP.replace(E_b_max=E_max, soc0=0.5)
-    cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
-    pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
-    floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
-        hst.floats(lo, hi, allow_nan=False), min_size=m, max_size=m)))
+    n, K, E_max, vp, pid, floats = draw_pieces(data)
     dE_then = floats(-3e5, 3e5, n)
     gap = floats(0.0, 2e5, n)
     ordered = data.draw(hst.booleans())
@@ -443,6 +416,32 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
             if start[p] < ts < end[p]:
                 e = ref_joined_error(dE_first, dE_then, pid, target, np.full(K, ts), E0, E_max)
                 assert ((e[p] > 0) == then_high[p]) == side, (p, ts)
+
+
+excursions = xla.jit(S.excursion_pieces)
+
+
+@settings(max_examples=40, deadline=None)
+@given(hst.data())
+def test_excursion_pieces_equal_their_loop(data):
+    """`excursion_pieces` against the loop (`ref_excursion_pieces`) on random plans that leave
+    the battery's limits: the same steps in each part, the same targets; each piece's parts
+    sum to its target, and a split piece's first part ends within the limits."""
+    n, K, E_max, vp, pid, floats = draw_pieces(data)
+    dE = floats(-4e5, 4e5, n)
+    target = floats(-1.5e6, 1.5e6, K)
+    got_pid, got_target = (np.asarray(x) for x in excursions(
+        vp, jnp.asarray(dE), jnp.asarray(pid), jnp.asarray(target)))
+    want_pid, want_target = ref_excursion_pieces(0.5 * E_max, E_max, dE, pid, target)
+    np.testing.assert_array_equal(got_pid, want_pid)
+    np.testing.assert_allclose(got_target, want_target, rtol=1e-12, atol=1e-6)
+    np.testing.assert_allclose(got_target[0::2] + got_target[1::2], target, rtol=1e-12,
+                               atol=1e-6)
+    assert np.all(np.diff(got_pid) >= 0)
+    start = np.clip(0.5 * E_max + np.cumsum(target) - target, 0.0, E_max)
+    split = np.isin(2 * np.arange(K) + 1, got_pid)
+    assert np.all((start + got_target[0::2] >= -1e-6)[split])
+    assert np.all((start + got_target[0::2] <= E_max + 1e-6)[split])
 
 
 def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam, pred=None):
