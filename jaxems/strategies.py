@@ -283,6 +283,24 @@ def steps_energy(vp, pred, mode, gear, P_b, dt):
     return plan_energy(vp, pred, mode, gear, dt)(P_b)
 
 
+def piece_span(pid, K: int):
+    """(first, last) (K,) int32: each piece's first and last step in pid (T,) (`piece_ids`);
+    an empty piece has first T and last -1."""
+    T = pid.shape[0]
+    k = jnp.arange(T, dtype=jnp.int32)
+    return (jnp.full((K,), T, jnp.int32).at[pid].min(k),
+            jnp.full((K,), -1, jnp.int32).at[pid].max(k))
+
+
+def target_bounds(vp, target):
+    """(start, end) (K,): where the targets (K,) put each piece's start and end, E_b(t_0) plus
+    the targets up to it, within the battery's limits (Level 2's plan, `battery_path`)."""
+    dtype = target.dtype
+    E_max = jnp.asarray(vp.E_b_max, dtype)
+    cum = jnp.asarray(vp.soc0 * vp.E_b_max, dtype) + jnp.cumsum(target)
+    return jnp.clip(cum - target, 0.0, E_max), jnp.clip(cum, 0.0, E_max)
+
+
 def battery_path(vp, dE, pid, target):
     """The battery energy (J) a plan expects, piece by piece, within the battery's limits.
 
@@ -301,11 +319,7 @@ def battery_path(vp, dE, pid, target):
     dtype = dE.dtype
     E_max = jnp.asarray(vp.E_b_max, dtype)
     E0 = jnp.asarray(vp.soc0 * vp.E_b_max, dtype)
-    K = target.shape[0]
-    T = dE.shape[0]
-    cum = E0 + jnp.cumsum(target)  # (K,) where the targets put each piece's end
-    ends = jnp.clip(cum, 0.0, E_max)
-    starts = jnp.clip(cum - target, 0.0, E_max)
+    starts, ends = target_bounds(vp, target.astype(dtype))
     first = jnp.concatenate([jnp.ones(1, bool), pid[1:] != pid[:-1]])
 
     def step(E, x):
@@ -315,7 +329,7 @@ def battery_path(vp, dE, pid, target):
         return E1, (E, E1)
 
     _, (E, after) = jax.lax.scan(step, E0, (dE, first, starts[pid]))
-    last = jnp.full((K,), -1, jnp.int32).at[pid].max(jnp.arange(T, dtype=jnp.int32))
+    last = piece_span(pid, target.shape[0])[1]
     E_end = jnp.where(last >= 0, after[jnp.maximum(last, 0)], ends)
     return E, E_end, ends
 
@@ -436,11 +450,9 @@ def excursion_pieces(vp, dE, pid, target, share: float = 0.01):
     K = target.shape[0]
     T = dE.shape[0]
     k = jnp.arange(T, dtype=jnp.int32)
-    cum = vp.soc0 * E_max + jnp.cumsum(target)
-    starts = jnp.clip(cum - target, 0.0, E_max)  # (K,)
+    starts, goal = target_bounds(vp, target)
     C = jnp.cumsum(dE)
-    first = jnp.full((K,), T, jnp.int32).at[pid].min(k)
-    last = jnp.full((K,), -1, jnp.int32).at[pid].max(k)
+    first, last = piece_span(pid, K)
     before = (C - dE)[jnp.clip(first, 0, T - 1)]  # (K,) the cumulative sum before each piece
     E = starts[pid] + C - before[pid]  # (T,) the free path at each step's end
     beyond = jnp.maximum(-E, E - E_max)  # > 0 beyond a limit
@@ -449,7 +461,6 @@ def excursion_pieces(vp, dE, pid, target, share: float = 0.01):
     split = (worst > share * E_max) & (t_s < last)
     second = split[pid] & (k > t_s[pid])
     s2 = l2.piece_sums(jnp.where(second, dE, 0.0), pid, K)  # what the second part adds
-    goal = jnp.clip(cum, 0.0, E_max)
     t1 = jnp.where(split, jnp.clip(goal - s2, 0.0, E_max) - starts, target)
     new_pid = 2 * pid + second.astype(pid.dtype)
     return new_pid, jnp.stack([t1, target - t1], axis=1).reshape(2 * K)
@@ -471,12 +482,12 @@ def make_plan(vp, mode, gear, P_b, lam, pred, dt, opts: Options, pieces=None) ->
     lam = jnp.broadcast_to(lam, pred.v.shape)
     whole = single_piece(lam.shape[0], lam.dtype)
     pid, target = pieces if pieces is not None else whole
+    energy = plan_energy(vp, pred, mode, gear, dt)
     if opts.trim_excursions and pieces is not None:
-        pid, target = excursion_pieces(vp, steps_energy(vp, pred, mode, gear, P_b, dt), pid,
-                                       target)
+        pid, target = excursion_pieces(vp, energy(P_b), pid, target)
     P_b = trim_battery_power(vp, pred, mode, gear, P_b, pid, target, dt)
     return Plan(mode=mode, gear=gear, lam=lam, P_b=P_b,
-                E_ref=battery_path(vp, steps_energy(vp, pred, mode, gear, P_b, dt), *whole)[0],
+                E_ref=battery_path(vp, energy(P_b), *whole)[0],
                 k_E=jnp.asarray(1.0 / opts.tau_E, lam.dtype),
                 level0=jnp.asarray(opts.level0_plan_power))
 
@@ -668,8 +679,8 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def shifted(d):  # d: (K,) shift per piece
         return jnp.clip(lam + d[pid], lo_b, hi_b)
 
-    start = jnp.full((K,), T, jnp.int32).at[pid].min(k.astype(jnp.int32))
-    end = jnp.zeros((K,), jnp.int32).at[pid].max(k.astype(jnp.int32) + 1)
+    start, last = piece_span(pid, K)
+    end = last + 1
 
     def order(held_err, held):  # charge_first (K,), then_high (K,) from the sides' scores
         # the side whose plan alone the limits hold less goes first (per piece)

@@ -51,15 +51,16 @@ class Kernels(NamedTuple):
 @functools.cache
 def kernels(mass) -> Kernels:
     """`Kernels` at VP's mass or at VP20's (one compilation each; the programs are those the
-    tests compared with their loops before VP20 joined them)."""
-    vp, pred = (VP, lambda: PRED) if mass == float(VP.mass) else (VP20, lambda: PRED20)
+    tests compared with their loops before VP20 joined them). After `_short_track`, which
+    sets PRED and PRED20."""
+    vp, pred = (VP, PRED) if mass == float(VP.mass) else (VP20, PRED20)
     return Kernels(
-        vp, pred(),
-        xla.jit(lambda lam_t: S._level1(vp, pred(), lam_t, 1.0, PARAMS)),
+        vp, pred,
+        xla.jit(lambda lam_t: S._level1(vp, pred, lam_t, 1.0, PARAMS)),
         xla.jit(lambda lam_t, sides: S._level1(
-            vp, pred(), lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p))),
-        xla.jit(lambda mode, gear, P_b: S.steps_energy(vp, pred(), mode, gear, P_b, 1.0)),
-        xla.jit(lambda lam, pid, target: S.sustaining_level1(vp, pred(), lam, 1.0, PARAMS, pid,
+            vp, pred, lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p))),
+        xla.jit(lambda mode, gear, P_b: S.steps_energy(vp, pred, mode, gear, P_b, 1.0)),
+        xla.jit(lambda lam, pid, target: S.sustaining_level1(vp, pred, lam, 1.0, PARAMS, pid,
                                                              target)))
 
 

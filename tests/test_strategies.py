@@ -472,9 +472,10 @@ def test_dp_bounds_plan_meets_its_path_where_it_reaches_the_limits():
         zero = jnp.zeros_like(pred.v)
         pieces = S.bound_pieces(vp, pred.mask, bp.E, bp.E_end, zero, E0, opts.dp_n_E)
         one = S.single_piece(n, zero.dtype)
+        before = opts._replace(trim_excursions=False)  # the one piece as the trim had it
         out = []
-        for pc in (pieces, one):
-            plan = S.make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, 1.0, opts, pc)
+        for pc, o in ((pieces, opts), (one, before)):
+            plan = S.make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, 1.0, o, pc)
             dE = S.steps_energy(vp, pred, mode, gear, plan.P_b, 1.0)
             off = jnp.max(jnp.where(pred.mask, jnp.abs(plan.E_ref - bp.E), 0.0))
             empty = jnp.sum(pred.mask & (plan.E_ref <= 1.0) & (dE < -1.0))
