@@ -5,6 +5,7 @@ plan's excursions (excursion_pieces), Level 1's costate at Level 2's guards (gua
 the short track at 25 t (one case of the plan-keeping Level 1 at 20 t) against plain loops."""
 
 import functools
+from types import SimpleNamespace
 from typing import Any, NamedTuple
 
 import jax
@@ -182,6 +183,52 @@ def test_compensate_raises_each_target_by_the_drift_over_its_stretch():
     s_mid = float(PRED.s[MID])
     np.testing.assert_allclose(np.asarray(target), [2.0 * s_mid, 2.0 * (L - s_mid)], rtol=1e-9)
     np.testing.assert_array_equal(np.asarray(pid), np.asarray(PID))
+
+
+def loop_interp(x, xs, ys):
+    """ys at x, linear between the samples (xs non-decreasing), held beyond the ends."""
+    if x <= xs[0]:
+        return ys[0]
+    for j in range(len(xs) - 1):
+        if xs[j] <= x <= xs[j + 1]:
+            if xs[j + 1] == xs[j]:
+                return ys[j + 1]
+            return ys[j] + (ys[j + 1] - ys[j]) * (x - xs[j]) / (xs[j + 1] - xs[j])
+    return ys[-1]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_plant_drift_is_the_plants_energy_minus_the_plans_at_each_step_start(seed):
+    """`plant_drift` against a loop: at each of the plan's step starts and at the route's end
+    (the masked steps at the end), the plant's battery energy interpolated by position between
+    its own samples (its steps' starts and its final state) minus the plan's expected energy
+    (its last value at the end); a plant that holds the plan's energy at those positions has
+    no drift."""
+    rng = np.random.default_rng(seed)
+    L = float(PRED.length)
+    n = 3 * T  # the plant's steps: a time grid, not the plan's
+    s_plant = np.sort(rng.uniform(0.0, L, n))
+    s_plant[0] = 0.0
+    s_plant[rng.integers(1, n, 5)] = s_plant[rng.integers(1, n, 5)]  # standstills: equal s
+    s_plant = np.sort(s_plant)
+    E_plant, E_final, E_ref = rng.uniform(0, 4e6, n), rng.uniform(0, 4e6), rng.uniform(0, 4e6, T)
+    res = SimpleNamespace(trace=SimpleNamespace(s=jnp.asarray(s_plant), E_b=jnp.asarray(E_plant)),
+                          final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_final)))
+    d = S.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res)
+    mask = np.asarray(PRED.mask)
+    at = np.append(np.where(mask, np.asarray(PRED.s), L), L)
+    xs, ys = np.append(s_plant, L), np.append(E_plant, E_final)
+    want = [loop_interp(x, xs, ys) - e for x, e in zip(at, np.append(E_ref, E_ref[-1]),
+                                                         strict=True)]
+    np.testing.assert_allclose(np.asarray(d.s), at, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(d.dE), want, rtol=0, atol=1e-6)
+    # the plant on the plan at the plan's positions: no drift there
+    E_on = np.append(E_ref, E_ref[-1])
+    res_on = SimpleNamespace(trace=SimpleNamespace(s=jnp.asarray(at[:-1]), E_b=jnp.asarray(E_ref)),
+                             final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_on[-1])))
+    d_on = S.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res_on)
+    steps = np.append(mask, True) & np.append(np.diff(at) > 0, True)  # distinct positions
+    np.testing.assert_allclose(np.asarray(d_on.dE)[steps], 0.0, atol=1e-6)
 
 
 def test_level1_targets_raise_the_trips_last_piece_by_the_reserve():
