@@ -389,6 +389,27 @@ def piece_bounds(pid, K):
     return start, end
 
 
+@settings(max_examples=40, deadline=None)
+@given(hst.data())
+def test_piece_span_and_target_bounds_equal_their_loops(data):
+    """`piece_span`: each piece's first and last step (T and -1 for a piece without steps),
+    against `piece_bounds`' loop; `target_bounds`: where the targets put each piece's start
+    and end, the start's energy plus the targets before (and with) it, within the limits,
+    against a loop."""
+    n, K, E_max, vp, pid, floats = draw_pieces(data)
+    target = floats(-3e6, 3e6, K)
+    first, last = (np.asarray(x) for x in S.piece_span(jnp.asarray(pid), K))
+    start, end = piece_bounds(pid, K)
+    np.testing.assert_array_equal(first, start)
+    np.testing.assert_array_equal(last, end - 1)
+    lo, hi = (np.asarray(x) for x in S.target_bounds(vp, jnp.asarray(target)))
+    E = 0.5 * E_max
+    for p in range(K):
+        assert abs(lo[p] - min(max(E, 0.0), E_max)) < 1e-6, p
+        E += target[p]
+        assert abs(hi[p] - min(max(E, 0.0), E_max)) < 1e-6, p
+
+
 def ref_joined_error(dE_first, dE_then, pid, target, ts, E0, E_max):
     """(K,) each piece's end within [0, E_max] (`ref_battery_path`, from E0) minus its goal,
     for the plan `first` (dE_first: (T,)) up to the piece's step ts (K,) and `then` after."""
