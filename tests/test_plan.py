@@ -1,6 +1,7 @@
 """Plans that the plant follows: the battery-power trim on M_c steps, Level 2's pieces as
-targets, the plan's battery energy within the limits, and the plant-drift compensation
-(strategies.trim_battery_power, piece_targets, battery_path, compensate), the pieces split at a
+targets, the plan's battery energy within the limits, the plant's drift from a plan and its
+compensation (strategies.trim_battery_power, piece_targets, piece_span, target_bounds,
+battery_path, plant_drift, compensate), the pieces split at a
 plan's excursions (excursion_pieces), Level 1's costate at Level 2's guards (guard_lambda), on
 the short track at 25 t (one case of the plan-keeping Level 1 at 20 t) against plain loops."""
 
