@@ -125,7 +125,8 @@ class Options(NamedTuple):
     and holds the speed on the battery); trim_excursions: a plan's battery-power trim splits
     each of its pieces where the plan's own path leaves the battery's limits furthest
     (`excursion_pieces`; multilevel's and dp-bound's plans; False: the pieces as they are, as
-    before 2026-11-28).
+    before 2026-11-28). The whole-number options have upper bounds too (`make_options`): they
+    size arrays and loops, and a typo must not run a machine out of memory.
     """
 
     n_iter: int = 2
@@ -1862,10 +1863,14 @@ def make_options(base: Options | Mapping | None = None, /, **fields) -> Options:
     return opts
 
 
-# the checks of `make_options`: whole numbers and their least value; true/false options;
-# real numbers, finite, with their range ((lo, hi, lo_open, hi_open); None: unbounded)
-_INT_OPTIONS = {"n_iter": 1, "h1": 1, "h2": 2, "t2": 1, "dp_n_E": 11, "dp_lams": 2, "dwell": 0,
-                "l2_pieces": 1, "mpc_pieces": 1, "dp_attempts": 1}
+# the checks of `make_options`: whole numbers and their range (lo, hi); true/false options;
+# real numbers, finite, with their range ((lo, hi, lo_open, hi_open); None: unbounded). The
+# whole numbers size arrays or loops: above hi a run would not fit a machine's memory or would
+# take hours (l2_pieces = 10**6 asked 9 TB of a (pieces x pieces) table on the short track),
+# where the figures settle far below it (l2_pieces 32-64, dp_n_E 101-801, n_iter 2-4, h1 5-20)
+_INT_OPTIONS = {"n_iter": (1, 20), "h1": (1, 600), "h2": (2, 86_400), "t2": (1, 3600),
+                "dp_n_E": (11, 2001), "dp_lams": (2, 512), "dwell": (0, 3600),
+                "l2_pieces": (1, 1024), "mpc_pieces": (1, 1024), "dp_attempts": (1, 20)}
 _BOOL_OPTIONS = ("sustain", "guard_sides", "end_cap", "same_open_time", "level0_plan_power",
                  "trim_excursions")
 _REAL_OPTIONS = {
@@ -1883,10 +1888,10 @@ _MAY_BE_NONE = ("soc_ref", "same_open_time", "eco_lambda_t")
 def _check_options(o: Options):
     """ValueError naming the first bad option: its type (a whole number, true or false, a
     finite real number) or its range."""
-    for k, lo in _INT_OPTIONS.items():
+    for k, (lo, hi) in _INT_OPTIONS.items():
         v = getattr(o, k)
-        if not (isinstance(v, int) and not isinstance(v, bool) and v >= lo):
-            raise ValueError(f"{k}: must be a whole number >= {lo} (got {v!r})")
+        if not (isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi):
+            raise ValueError(f"{k}: must be a whole number >= {lo} and <= {hi} (got {v!r})")
     for k in _BOOL_OPTIONS:
         v = getattr(o, k)
         if not (isinstance(v, bool) or (v is None and k in _MAY_BE_NONE)):

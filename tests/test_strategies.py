@@ -530,6 +530,11 @@ def test_bad_options_are_clear_errors(runs):
     ("same_open_time", 1, "true or false"),
     ("n_iter", True, "whole number"),
     ("eco_lambda_t", -1.0, ">= 0"),
+    # sizes that would not fit in memory or would run for hours: refused before anything runs
+    ("l2_pieces", 10**6, "whole number >= 1 and <= 1024"),
+    ("dp_n_E", 10**5, "<= 2001"),
+    ("n_iter", 1000, "<= 20"),
+    ("h1", 601, "<= 600"),
 ])
 def test_bad_option_values_name_the_option(name, value, says):
     # checked before anything runs: a type or a value that would run to NaN or overflow
