@@ -501,14 +501,33 @@ def print_result(name: str, compute, as_json: bool, fmt) -> int:
     return script_main(name, run)
 
 
+def out_of_memory(e: BaseException) -> bool:
+    """Whether e is the machine running out of memory: Python's MemoryError, or XLA's
+    RESOURCE_EXHAUSTED (a `jax.errors.JaxRuntimeError`, told by name: no JAX import here)."""
+    return isinstance(e, MemoryError) or (type(e).__name__ == "JaxRuntimeError"
+                                          and "RESOURCE_EXHAUSTED" in str(e))
+
+
+OUT_OF_MEMORY_HINT = ("out of memory; a shorter route, a larger time step (--dt), fewer "
+                      "configurations at once (a sweep's chunk) or smaller size options "
+                      "(dp_n_E, l2_pieces, h2) need less")
+
+
 def script_main(name: str, main, *args) -> int:
     """The entry of `jaxems` and of the experiments and benchmarks: main(*args), its exit
     status; a bad input (ValueError, OSError, CLIError: route, vehicle, option and argument
-    errors) is one line `NAME: error: ...` on stderr and exit status 1, not a traceback."""
+    errors) is one line `NAME: error: ...` on stderr and exit status 1, not a traceback, and so
+    is a run that does not fit in the machine's memory (`out_of_memory`), with what shrinks it."""
     try:
         return int(main(*args) or 0)
     except (ValueError, OSError, CLIError) as e:  # RouteError, VehicleError are ValueErrors
         print(f"{name}: error: {' '.join(str(e).split())}", file=sys.stderr)
+        return EXIT_ERROR
+    except (MemoryError, RuntimeError) as e:
+        if not out_of_memory(e):
+            raise
+        first = " ".join(str(e).split("\n")[0].split())[:200]
+        print(f"{name}: error: {OUT_OF_MEMORY_HINT} ({first})", file=sys.stderr)
         return EXIT_ERROR
 
 

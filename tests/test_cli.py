@@ -102,6 +102,23 @@ def test_scripts_end_bad_input_in_one_line(capsys):
     assert script_main("exp", bad) == 1
     assert capsys.readouterr().err == "exp: error: route x: no such route\n"
     assert script_main("exp", lambda n: n, 0) == 0 and script_main("exp", lambda: 3) == 3
+    # a run that does not fit in memory: one line with what shrinks it, not XLA's traceback
+    import jax
+
+    def too_big():
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating "
+                                         "9250356819376 bytes.\nmore of XLA's text")
+
+    assert script_main("exp", too_big) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("exp: error: out of memory; a shorter route") and err.count("\n") == 1
+    assert "(RESOURCE_EXHAUSTED: Out of memory allocating 9250356819376 bytes.)" in err
+
+    def other():
+        raise RuntimeError("not memory")
+
+    with pytest.raises(RuntimeError, match="not memory"):  # any other error stays an error
+        script_main("exp", other)
     for f, text in ((positive_int, "0"), (positive_int, "1.5"), (positive_float, "-5"),
                     (positive_float, "nan"), (positive_float, "x")):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a"):
