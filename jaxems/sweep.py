@@ -571,7 +571,8 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
     Returns {field: (n_real,) array} with the `RESULT_FIELDS`, ``status`` and ``wall_s`` (the
     chunk's wall time per configuration), plus ``_compiles`` (backend compilations during the
     chunk in this process) and ``_wall_s`` (the chunk's wall time). An exception inside the
-    strategy does not stop the sweep: every row of the chunk gets status ``error: ...``.
+    strategy does not stop the sweep: every row of the chunk gets status ``error: ...`` (a
+    chunk that does not fit in memory: what shrinks it).
     """
     from .strategies import NO_LEVEL2, simulate_batch
 
@@ -592,7 +593,13 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
             rows[f] = a[:n].astype(np.int64 if f in INT_FIELDS else np.float64)
         rows["status"] = np.array([str(s) for s in np.asarray(out["status"])[:n]], dtype=object)
     except Exception as e:  # recorded per row; the sweep goes on
-        msg = " ".join(f"{type(e).__name__}: {e}".split())[:300]
+        from .cli import out_of_memory
+
+        text = f"{type(e).__name__}: {e}"
+        if out_of_memory(e):  # XLA's first line, and what shrinks the chunk
+            text = (f"out of memory ({str(e).splitlines()[0]}); a smaller batch_size, a larger "
+                    f"dt_s or smaller size options need less")
+        msg = " ".join(text.split())[:300]
         rows = {f: np.zeros(n, np.int64) if f in INT_FIELDS else np.full(n, np.nan)
                 for f in RESULT_FIELDS}
         rows["level2_status"] = np.full(n, NO_LEVEL2, np.int64)

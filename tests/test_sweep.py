@@ -158,6 +158,16 @@ def test_a_chunk_whose_strategy_raises_gets_error_rows(sweep_a, monkeypatch):
     assert (rows["level2_status"] == st.NO_LEVEL2).all()
     assert (rows["length_m"] == float(np.asarray(route.length))).all()
 
+    def too_big(*a, **k):  # XLA out of memory: its first line and what shrinks the chunk
+        raise jax.errors.JaxRuntimeError("RESOURCE_EXHAUSTED: Out of memory allocating 42 "
+                                         "bytes.\nmore of XLA's text")
+
+    monkeypatch.setattr(st, "simulate_batch", too_big)
+    rows = sw.compute_chunk(task, route)
+    assert list(rows["status"]) == [
+        "error: out of memory (RESOURCE_EXHAUSTED: Out of memory allocating 42 bytes.); a "
+        "smaller batch_size, a larger dt_s or smaller size options need less"] * n
+
 
 def test_rerun_and_resume_compute_only_what_is_missing(sweep_a, tmp_path, capsys):
     p, out, _ = sweep_a
