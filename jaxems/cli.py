@@ -501,11 +501,14 @@ def print_result(name: str, compute, as_json: bool, fmt) -> int:
     return script_main(name, run)
 
 
-def out_of_memory(e: BaseException) -> bool:
-    """Whether e is the machine running out of memory: Python's MemoryError, or XLA's
-    RESOURCE_EXHAUSTED (a `jax.errors.JaxRuntimeError`, told by name: no JAX import here)."""
-    return isinstance(e, MemoryError) or (type(e).__name__ == "JaxRuntimeError"
-                                          and "RESOURCE_EXHAUSTED" in str(e))
+def out_of_memory(e: BaseException) -> str | None:
+    """Where e is the machine running out of memory (Python's MemoryError, or XLA's
+    RESOURCE_EXHAUSTED: a `jax.errors.JaxRuntimeError`, told by name: no JAX import here), the
+    first line of its message, in one line; else None."""
+    if not (isinstance(e, MemoryError) or (type(e).__name__ == "JaxRuntimeError"
+                                           and "RESOURCE_EXHAUSTED" in str(e))):
+        return None
+    return " ".join(str(e).split("\n")[0].split())[:200]
 
 
 OUT_OF_MEMORY_HINT = ("out of memory; a shorter route, a larger time step (--dt), fewer "
@@ -524,10 +527,10 @@ def script_main(name: str, main, *args) -> int:
         print(f"{name}: error: {' '.join(str(e).split())}", file=sys.stderr)
         return EXIT_ERROR
     except (MemoryError, RuntimeError) as e:
-        if not out_of_memory(e):
+        cause = out_of_memory(e)
+        if cause is None:
             raise
-        first = " ".join(str(e).split("\n")[0].split())[:200]
-        print(f"{name}: error: {OUT_OF_MEMORY_HINT} ({first})", file=sys.stderr)
+        print(f"{name}: error: {OUT_OF_MEMORY_HINT} ({cause})", file=sys.stderr)
         return EXIT_ERROR
 
 

@@ -683,10 +683,9 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     start, last = piece_span(pid, K)
     end = last + 1
 
-    def order(held_err, held):  # charge_first (K,), then_high (K,) from the sides' scores
-        # the side whose plan alone the limits hold less goes first (per piece)
-        charge_first = held[1] > held[0]
-        return charge_first, jnp.where(charge_first, held_err[1], held_err[0]) > 0
+    def preferred(held):  # charge_first (K,): the side whose plan alone the limits hold
+        # less goes first (per piece; `split` may turn it)
+        return held[1] > held[0]
 
     def first_then(charge_first, x_a, x_b):  # (first, then) (T,) of the sides' x_a, x_b (T,)
         return (jnp.where(charge_first[pid], x_a, x_b), jnp.where(charge_first[pid], x_b, x_a))
@@ -732,7 +731,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
     def split(held_err, held, t0, t1, sides, states):  # the time split on the sides' plans
         # in the order the scores prefer, unless its joins both fall back from the split
         # (Level 0 refuses the switch there) where the other order's do not
-        pref = order(held_err, held)[0]
+        pref = preferred(held)
         at_pref, at_other = (split_at(held_err, t0, t1, sides, states, cf)
                              for cf in (pref, ~pref))
         joins = lambda s: (s[2][0] == s[0]) | (s[2][1] == s[1])  # noqa: E731
@@ -757,7 +756,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         t0, t1, js, flip, held_err, held = jax.lax.cond(
             i == p_cand, split, lambda he, h, a, b, *_: (a, b, js, flip, he, h), held_err, held,
             t0, t1, sides, states)
-        charge_first, best = order(held_err, held)[0] ^ flip, choice(held_err, held)
+        charge_first, best = preferred(held) ^ flip, choice(held_err, held)
         lam_t = costate(phase, i, a, b, charge_first, best, t0, t1, js)
         # the switching costs along the path only for the final plan, which returns them
         r = _level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,

@@ -595,10 +595,10 @@ def compute_chunk(task: ChunkTask, route: Route) -> dict[str, Any]:
     except Exception as e:  # recorded per row; the sweep goes on
         from .cli import out_of_memory
 
-        text = f"{type(e).__name__}: {e}"
-        if out_of_memory(e):  # XLA's first line, and what shrinks the chunk
-            text = (f"out of memory ({str(e).splitlines()[0]}); a smaller batch_size, a larger "
-                    f"dt_s or smaller size options need less")
+        cause = out_of_memory(e)  # XLA's first line, and what shrinks the chunk
+        text = (f"{type(e).__name__}: {e}" if cause is None else
+                f"out of memory ({cause}); a smaller batch_size, a larger dt_s or smaller size "
+                f"options need less")
         msg = " ".join(text.split())[:300]
         rows = {f: np.zeros(n, np.int64) if f in INT_FIELDS else np.full(n, np.nan)
                 for f in RESULT_FIELDS}

@@ -224,9 +224,8 @@ def test_plant_drift_is_the_plants_energy_minus_the_plans_at_each_step_start(see
     np.testing.assert_allclose(np.asarray(d.s), at, rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.asarray(d.dE), want, rtol=0, atol=1e-6)
     # the plant on the plan at the plan's positions: no drift there
-    E_on = np.append(E_ref, E_ref[-1])
     res_on = SimpleNamespace(trace=SimpleNamespace(s=jnp.asarray(at[:-1]), E_b=jnp.asarray(E_ref)),
-                             final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_on[-1])))
+                             final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_ref[-1])))
     d_on = S.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res_on)
     steps = np.append(mask, True) & np.append(np.diff(at) > 0, True)  # distinct positions
     np.testing.assert_allclose(np.asarray(d_on.dE)[steps], 0.0, atol=1e-6)
@@ -377,7 +376,6 @@ def test_plan_split_at_its_excursion_asks_less_of_an_empty_battery():
     assert a_plain > 1e4  # the case: the plain trim's plan draws from an empty battery
     assert a_split < 0.5 * a_plain, (a_split, a_plain)
     assert np.all(np.abs(e_split) <= np.abs(e_plain) + 1.0), (e_split, e_plain)
-
 
 
 def piece_bounds(pid, K):
