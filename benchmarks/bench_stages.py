@@ -58,6 +58,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     from bench_sweep import vehicles
 
+    from jaxems import plan as pn
     from jaxems import plant as pl
     from jaxems import strategies as S
     from jaxems import switching as sw
@@ -101,7 +102,7 @@ def main(argv=None) -> int:
     c2 = timed("level2", v(lambda vp, p, w: l2.costate_kernel(
         vp, p.P_d, p.v, w, p.mask, dt, max_pieces=opts.l2_pieces)), vps, pred, w0)
 
-    lam, pieces = xla.jit(v(lambda vp, p, c: S.level1_targets(vp, p, c, S.no_drift(p), opts)))(
+    lam, pieces = xla.jit(v(lambda vp, p, c: S.level1_targets(vp, p, c, pn.no_drift(p), opts)))(
         vps, pred, c2)
     trac = xla.jit(v(lambda vp, p: l1.traction_table(vp, p.v, p.grade, params)))(vps, pred)
 
@@ -114,20 +115,20 @@ def main(argv=None) -> int:
 
     def viterbi(vp, t, p):
         S_ = t.stage.shape[1]
-        m0, g0 = S._init_state(p)
+        m0, g0 = pn.init_state(p)
         init = l1._init_cost(m0, g0, S_, S_ // 4, t.stage.dtype)
         return l1.solve_dp(vp.dt_M, vp.dt_G, t.stage, t.xs, t.consts, t.dconsts, init, p.mask,
                            fast=opts.same_open_time)
 
     timed("level1_viterbi", v(lambda *a: viterbi(*a)[:2]), vps, tb, pred)
     timed("level1_viterbi_cost_only", v(lambda *a: viterbi(*a).cost), vps, tb, pred)
-    r1, lam1 = timed("level1_sustaining", v(lambda vp, p, lam_t, pc: S.sustaining_level1(
+    r1, lam1 = timed("level1_sustaining", v(lambda vp, p, lam_t, pc: pn.sustaining_level1(
         vp, p, lam_t, dt, params, *pc, fast=opts.same_open_time)), vps, pred, lam, pieces)
-    out["sustaining_dps"] = S.sustaining_dps(int(pred.v.shape[-1]))
+    out["sustaining_dps"] = pn.sustaining_dps(int(pred.v.shape[-1]))
     n_plant = S.plant_steps(n_steps, opts)
 
     def plant(vp, p, r, lam_t, pc):
-        plan = S.make_plan(vp, r.mode, r.gear, r.P_b, lam_t, p, dt, opts, pc)
+        plan = pn.make_plan(vp, r.mode, r.gear, r.P_b, lam_t, p, dt, opts, pc)
         return S._run_plan(vp, pl.make_track(route, p, opts.end_cap), p, plan, n_plant,
                            dt).final.tot.fuel
 

@@ -4,7 +4,7 @@ the plant's fuel against the plan's, stretch by stretch.
 multilevel's last plan and dp-bound's reported one (`Result.extra`) hold each step's state,
 battery power and the battery energy the plan expects within the battery's limits (`E_ref`,
 as the plant holds them). Where E_ref is at empty and the plan's own model
-(`strategies.steps_energy`) still draws from the battery, the plant cannot do what the plan
+(`plan.steps_energy`) still draws from the battery, the plant cannot do what the plan
 does and runs the engine instead. For each stretch of `--segment-km` the script prints the
 plant's fuel (its trace's, `Trace.P_f`: the synchronisation energy the engine supplies where
 the battery cannot is in the run's fuel_J only) against the plan's Level 1 split (`powersplit.split_state` of the plan's state
@@ -34,6 +34,7 @@ config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from jaxems import plan as pn  # noqa: E402
 from jaxems import strategies as S  # noqa: E402
 from jaxems.cli import positive_float  # noqa: E402
 from jaxems.levels import powersplit as ps  # noqa: E402
@@ -45,7 +46,7 @@ EMPTY_J = 1.0  # a plan's battery "at empty": E_ref within this of 0 (J)
 split_steps = jax.jit(jax.vmap(ps.split_state, in_axes=(None, 0, 0, 0, 0, 0)))
 
 
-def last_plan(res) -> S.Plan:
+def last_plan(res) -> pn.Plan:
     """The plan the plant ran: multilevel's last iteration's, dp-bound's reported attempt's."""
     plan = res.extra.plan
     if res.strategy == "multilevel":
@@ -58,7 +59,7 @@ def tracking(res, vp, segment_m: float, dt: float = 1.0) -> dict:
     pred, tr = res.prediction, res.trace
     plan = last_plan(res)
     mask = np.asarray(pred.mask)
-    dE = np.asarray(S.steps_energy(vp, pred, jnp.asarray(plan.mode), jnp.asarray(plan.gear),
+    dE = np.asarray(pn.steps_energy(vp, pred, jnp.asarray(plan.mode), jnp.asarray(plan.gear),
                                    jnp.asarray(plan.P_b), dt))
     empty = mask & (plan.E_ref <= EMPTY_J) & (dE < -EMPTY_J)
     split = split_steps(vp, pred.P_d, pred.v, jnp.asarray(plan.lam), jnp.asarray(plan.mode),

@@ -971,11 +971,11 @@ def kernel_level2(vp: VehicleParams, pred, *, dt: float, n_iter_l2: int = 40):
 
 
 def kernel_level1(vp: VehicleParams, pred, lam, params: SwitchCostParams, *, dt: float):
-    """Stage 3 of `kernel_plan`: `strategies._level1` (Hamiltonian table, switching costs,
+    """Stage 3 of `kernel_plan`: `plan.level1` (Hamiltonian table, switching costs,
     Viterbi; the start state of the strategy) at the costate lam. Returns `Level1Result`."""
-    from . import strategies
+    from . import plan
 
-    return strategies._level1(vp, pred, lam, dt, params)
+    return plan.level1(vp, pred, lam, dt, params)
 
 
 def kernel_plan(route: Route, vp: VehicleParams, params: SwitchCostParams, *, dt: float,
@@ -1241,7 +1241,7 @@ def _bound_interp(V1, x, dE, n_E):
 
 def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, n_E,
                  big=1e15) -> RefBound:
-    """dp-bound's DP (`strategies.bound_dp`) as loops: backward over an E_b grid of n_E points
+    """dp-bound's DP (`bound.bound_dp`) as loops: backward over an E_b grid of n_E points
     with linear interpolation of the value function, then a forward rollout from the exact E0.
 
     fuel, dEb: (T, J, S) each candidate's fuel (J) and E_b change (J) per state; C: (T, S, S)
@@ -1311,7 +1311,7 @@ def ref_bound_dp(fuel, dEb, C, mask, s_init, E0, E_max, goal, lam_end, penalty, 
 
 
 def ref_bound_pieces(mask, E, E_end, d, goal, E_max, n_E, K):
-    """`strategies.bound_pieces` as a loop: walk the DP's path E (T,) (E_end after it), open
+    """`bound.bound_pieces` as a loop: walk the DP's path E (T,) (E_end after it), open
     a new piece (at most K) at each counted step (mask (T,)) after the first where the path
     comes within half a grid cell (E_max / (n_E - 1)) of a limit or leaves it (a step that
     does not count is at none); add each counted step's change less its drift d (T,) to its
@@ -1335,7 +1335,7 @@ def ref_bound_pieces(mask, E, E_end, d, goal, E_max, n_E, K):
 
 
 def ref_excursion_pieces(E0, E_max, dE, pid, target, share=0.01):
-    """`strategies.excursion_pieces` as a loop over each piece's steps: walk its path from
+    """`plan.excursion_pieces` as a loop over each piece's steps: walk its path from
     where the targets put its start (E0 plus the targets before it, within [0, E_max]) without
     the limits; at the first step whose end lies furthest beyond a limit, if that is more than
     share * E_max and not the piece's last step, end the piece there at

@@ -12,8 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxems import dp, xla
+from jaxems import bound as bd
 from jaxems import reference as R
-from jaxems import strategies as S_
 from jaxems.levels import powersplit as ps
 from jaxems.params import load_vehicle
 
@@ -182,13 +182,13 @@ def test_float32_decides_as_float64_over_a_long_route(n_t):
 
 
 # ------------------------------------------------------------------------------ dp-bound's DP
-class _Pred(NamedTuple):  # what `strategies.bound_dp` reads of a Level 3 prediction
+class _Pred(NamedTuple):  # what `bound.bound_dp` reads of a Level 3 prediction
     v: Any
     mask: Any
     v_ref: Any
 
 
-_bound_dp = xla.jit(S_.bound_dp, static_argnums=4)
+_bound_dp = xla.jit(bd.bound_dp, static_argnums=4)
 _BS, _BJ = 8, 3  # states (4 modes x 2 "gears"), candidates per state
 _VP = load_vehicle("reference_truck")
 
@@ -205,12 +205,12 @@ def _bound_instance(rng, T, n_E, aligned, standing, mask, reach=1.7):
     else:
         dEb = rng.uniform(-reach, reach, (T, _BJ, _BS)) * dE
     fuel = rng.uniform(0.0, 2e5, (T, _BJ, _BS)) - 1.2 * dEb  # discharging saves fuel
-    fuel[rng.random(fuel.shape) < 0.1] = S_.BIG
+    fuel[rng.random(fuel.shape) < 0.1] = bd.BIG
     C = rng.uniform(0.0, 3e4, (T, _BS, _BS))
     C[:, np.arange(_BS), np.arange(_BS)] = 0.0
-    dep = S_.BoundCands(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
+    dep = bd.BoundCands(fuel=jnp.asarray(fuel), dEb=jnp.asarray(dEb),
                         P_b=jnp.asarray(rng.uniform(-1e5, 1e5, fuel.shape)))
-    tab = S_.BoundTables(dep=dep, fix=S_.BoundCands(*(jnp.zeros((T, 0)),) * 3),
+    tab = bd.BoundTables(dep=dep, fix=bd.BoundCands(*(jnp.zeros((T, 0)),) * 3),
                          C=jnp.asarray(C), lams=jnp.asarray(-np.arange(1.0, _BJ + 1)),
                          lam_end=jnp.asarray(rng.uniform(-3.0, -1.0)), lam_sw=None)
     pred = _Pred(v=jnp.ones(T), mask=jnp.asarray(mask),
@@ -250,7 +250,7 @@ def test_bound_dp_equals_its_loops(seed, standing, pad, goal_frac, penalty, reac
     np.testing.assert_allclose(float(bp.lam0), ref.lam0, rtol=1e-9, atol=1e-12)
 
 
-_bound_pieces = xla.jit(S_.bound_pieces, static_argnums=(6, 7))
+_bound_pieces = xla.jit(bd.bound_pieces, static_argnums=(6, 7))
 
 
 @settings(max_examples=40)
@@ -316,7 +316,7 @@ def test_bound_dp_vmapped_equals_each_alone():
     pred = insts[0][1]
     goal, penalty = 0.5 * float(_VP.E_b_max), 1.0
     tabs = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[tab for tab, _, _ in insts])
-    batch = xla.jit(jax.vmap(lambda tab: S_.bound_dp(_VP, pred, tab, goal, n_E, penalty)))(tabs)
+    batch = xla.jit(jax.vmap(lambda tab: bd.bound_dp(_VP, pred, tab, goal, n_E, penalty)))(tabs)
     for b, (tab, _, _) in enumerate(insts):
         one = _bound_dp(_VP, pred, tab, goal, n_E, penalty)
         np.testing.assert_array_equal(np.asarray(batch.state[b]), np.asarray(one.state))
@@ -338,9 +338,9 @@ def test_bound_dp_reads_one_candidate_where_they_are_equal(seed, standing, n_dep
     tab, pred, _ = _bound_instance(np.random.default_rng(seed), T, n_E, False, standing,
                                    np.arange(T) < T - pad)
     same = lambda a: a.at[:, :, n_dep:].set(a[:, :1, n_dep:])  # noqa: E731
-    tab = tab._replace(dep=S_.BoundCands(*map(same, tab.dep)))
-    split = tab._replace(dep=S_.BoundCands(*(a[:, :, :n_dep] for a in tab.dep)),
-                         fix=S_.BoundCands(*(a[:, 0, n_dep:] for a in tab.dep)))
+    tab = tab._replace(dep=bd.BoundCands(*map(same, tab.dep)))
+    split = tab._replace(dep=bd.BoundCands(*(a[:, :, :n_dep] for a in tab.dep)),
+                         fix=bd.BoundCands(*(a[:, 0, n_dep:] for a in tab.dep)))
     for a, b in zip(split.full(), tab.dep, strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     goal, penalty = 0.5 * float(_VP.E_b_max), 1.0

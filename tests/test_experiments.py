@@ -283,7 +283,7 @@ def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, str
     vp = load_vehicle().replace(mass=25000.0, E_b_max=3e6)
     res = simulate("short_track", vp, strategy)
     plan = track.last_plan(res)
-    dE = np.asarray(track.S.steps_energy(vp, res.prediction, plan.mode, plan.gear, plan.P_b,
+    dE = np.asarray(track.pn.steps_energy(vp, res.prediction, plan.mode, plan.gear, plan.P_b,
                                          1.0))
     mask = np.asarray(res.prediction.mask)
     n = sum(1 for k in range(mask.size)

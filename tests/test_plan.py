@@ -1,6 +1,6 @@
 """Plans that the plant follows: the battery-power trim on M_c steps, Level 2's pieces as
 targets, the plan's battery energy within the limits, the plant's drift from a plan and its
-compensation (strategies.trim_battery_power, piece_targets, piece_span, target_bounds,
+compensation (plan.trim_battery_power, piece_targets, piece_span, target_bounds,
 battery_path, plant_drift, compensate), the pieces split at a
 plan's excursions (excursion_pieces), Level 1's costate at Level 2's guards (guard_lambda), on
 the short track at 25 t (one case of the plan-keeping Level 1 at 20 t) against plain loops."""
@@ -17,6 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as hst
 
 from jaxems import plant as pl
+from jaxems import plan as pn
 from jaxems import powertrain as pt
 from jaxems import strategies as S
 from jaxems import switching as sw
@@ -58,11 +59,11 @@ def kernels(mass) -> Kernels:
     vp, pred = (VP, PRED) if mass == float(VP.mass) else (VP20, PRED20)
     return Kernels(
         vp, pred,
-        xla.jit(lambda lam_t: S._level1(vp, pred, lam_t, 1.0, PARAMS)),
-        xla.jit(lambda lam_t, sides: S._level1(
+        xla.jit(lambda lam_t: pn.level1(vp, pred, lam_t, 1.0, PARAMS)),
+        xla.jit(lambda lam_t, sides: pn.level1(
             vp, pred, lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p))),
-        xla.jit(lambda mode, gear, P_b: S.steps_energy(vp, pred, mode, gear, P_b, 1.0)),
-        xla.jit(lambda lam, pid, target: S.sustaining_level1(vp, pred, lam, 1.0, PARAMS, pid,
+        xla.jit(lambda mode, gear, P_b: pn.steps_energy(vp, pred, mode, gear, P_b, 1.0)),
+        xla.jit(lambda lam, pid, target: pn.sustaining_level1(vp, pred, lam, 1.0, PARAMS, pid,
                                                              target)))
 
 
@@ -78,10 +79,10 @@ def _short_track():
     PID = jnp.asarray((np.arange(T) >= MID).astype(np.int32))
 
 
-trim_vp = xla.jit(lambda vp, target: S.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
+trim_vp = xla.jit(lambda vp, target: pn.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
                                                           PID, target, 1.0))
 trim = lambda target: trim_vp(VP, target)  # noqa: E731
-path = xla.jit(S.battery_path)
+path = xla.jit(pn.battery_path)
 
 
 def loop_range(k):
@@ -112,12 +113,12 @@ def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
             mode[k] = rng.integers(0, 4) if new else mode[k - 1]
             gear[k] = rng.integers(0, 12) if new else gear[k - 1]
         P_b = rng.uniform(-150e3, 150e3, T)
-        got = np.asarray(S.steps_energy(VP, PRED, jnp.asarray(mode), jnp.asarray(gear),
+        got = np.asarray(pn.steps_energy(VP, PRED, jnp.asarray(mode), jnp.asarray(gear),
                                         jnp.asarray(P_b), 1.0))
         want = ref_plan_energy(VP, PRED.P_d, PRED.v, mode, gear, P_b, 1.0, mask)
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-6)
     const = np.full(T, 5, np.int32)
-    got = np.asarray(S.steps_energy(VP, PRED, jnp.asarray(const * 0), jnp.asarray(const),
+    got = np.asarray(pn.steps_energy(VP, PRED, jnp.asarray(const * 0), jnp.asarray(const),
                                     jnp.asarray(P_b), 1.0))
     plain = -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b)))
     np.testing.assert_allclose(got, np.where(mask, plain, 0.0), rtol=1e-12)
@@ -129,7 +130,7 @@ def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
     assert both[k - 1]
     g = np.full(T, 5, np.int32)
     g[k:] = 4
-    e = np.asarray(S.steps_energy(VP, PRED, jnp.zeros(T, jnp.int32), jnp.asarray(g),
+    e = np.asarray(pn.steps_energy(VP, PRED, jnp.zeros(T, jnp.int32), jnp.asarray(g),
                                   jnp.full(T, -100e3), 1.0))
     assert e[k - 1] <= 0.0 < e[k - 2]
     assert 0.0 < e[k] < e[k - 2]
@@ -178,9 +179,9 @@ def test_trim_meets_each_piece_target_within_the_states_ranges(target):
 
 def test_compensate_raises_each_target_by_the_drift_over_its_stretch():
     L = float(PRED.length)
-    drift = S.Drift(s=jnp.linspace(0.0, L, T + 1), dE=-2.0 * jnp.linspace(0.0, L, T + 1))
+    drift = pn.Drift(s=jnp.linspace(0.0, L, T + 1), dE=-2.0 * jnp.linspace(0.0, L, T + 1))
     bnd = jnp.asarray([0, MID, T])
-    pid, target = S.compensate((PID, jnp.zeros(2)), PRED, bnd, drift)
+    pid, target = pn.compensate((PID, jnp.zeros(2)), PRED, bnd, drift)
     s_mid = float(PRED.s[MID])
     np.testing.assert_allclose(np.asarray(target), [2.0 * s_mid, 2.0 * (L - s_mid)], rtol=1e-9)
     np.testing.assert_array_equal(np.asarray(pid), np.asarray(PID))
@@ -215,7 +216,7 @@ def test_plant_drift_is_the_plants_energy_minus_the_plans_at_each_step_start(see
     E_plant, E_final, E_ref = rng.uniform(0, 4e6, n), rng.uniform(0, 4e6), rng.uniform(0, 4e6, T)
     res = SimpleNamespace(trace=SimpleNamespace(s=jnp.asarray(s_plant), E_b=jnp.asarray(E_plant)),
                           final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_final)))
-    d = S.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res)
+    d = pn.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res)
     mask = np.asarray(PRED.mask)
     at = np.append(np.where(mask, np.asarray(PRED.s), L), L)
     xs, ys = np.append(s_plant, L), np.append(E_plant, E_final)
@@ -226,7 +227,7 @@ def test_plant_drift_is_the_plants_energy_minus_the_plans_at_each_step_start(see
     # the plant on the plan at the plan's positions: no drift there
     res_on = SimpleNamespace(trace=SimpleNamespace(s=jnp.asarray(at[:-1]), E_b=jnp.asarray(E_ref)),
                              final=SimpleNamespace(s=jnp.asarray(L), E_b=jnp.asarray(E_ref[-1])))
-    d_on = S.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res_on)
+    d_on = pn.plant_drift(PRED, SimpleNamespace(E_ref=jnp.asarray(E_ref)), res_on)
     steps = np.append(mask, True) & np.append(np.diff(at) > 0, True)  # distinct positions
     np.testing.assert_allclose(np.asarray(d_on.dE)[steps], 0.0, atol=1e-6)
 
@@ -241,7 +242,7 @@ def test_level1_targets_raise_the_trips_last_piece_by_the_reserve():
         E_bnd = jnp.asarray([2e6, 1.5e6, 2e6, 2e6])
 
     opts = S.Options(guard_sides=False)
-    drift = S.no_drift(PRED)
+    drift = pn.no_drift(PRED)
     last = int(np.sum(np.asarray(PRED.mask))) - 1
     assert last < T - 1  # the prediction is padded
     for reserve in (0.0, 4e4):
@@ -257,7 +258,7 @@ def test_piece_targets_map_steps_to_level2_pieces():
         boundaries = jnp.asarray([0, 5, 9, 12])
         E_bnd = jnp.asarray([2e6, 0.0, 4e6, 2e6])
 
-    pid, target = S.piece_targets(C2, 12)
+    pid, target = pn.piece_targets(C2, 12)
     np.testing.assert_array_equal(np.asarray(pid), [0] * 5 + [1] * 4 + [2] * 3)
     np.testing.assert_allclose(np.asarray(target), [-2e6, 4e6, -2e6])
 
@@ -326,7 +327,7 @@ def test_trim_meets_the_pieces_ends_within_a_small_battery(target):
     assert abs(held_end(np.asarray(R1.P_b))[0][0] - goal[0]) > 1e4
 
 
-plan_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
+plan_vp = xla.jit(lambda vp, target: pn.make_plan(vp, R1.mode, R1.gear, R1.P_b,
                                                   jnp.asarray(-2.0), PRED, 1.0,
                                                   S.make_options(trim_excursions=False),
                                                   (PID, target)))
@@ -350,7 +351,7 @@ def test_plan_expects_its_own_battery_path_across_pieces():
     assert abs(restarted[MID] - own[MID]) > 1e4  # the case: the first piece misses its end
 
 
-plan_split_vp = xla.jit(lambda vp, target: S.make_plan(vp, R1.mode, R1.gear, R1.P_b,
+plan_split_vp = xla.jit(lambda vp, target: pn.make_plan(vp, R1.mode, R1.gear, R1.P_b,
                                                         jnp.asarray(-2.0), PRED, 1.0,
                                                         S.make_options(None), (PID, target)))
 
@@ -397,11 +398,11 @@ def test_piece_span_and_target_bounds_equal_their_loops(data):
     against a loop."""
     n, K, E_max, vp, pid, floats = draw_pieces(data)
     target = floats(-3e6, 3e6, K)
-    first, last = (np.asarray(x) for x in S.piece_span(jnp.asarray(pid), K))
+    first, last = (np.asarray(x) for x in pn.piece_span(jnp.asarray(pid), K))
     start, end = piece_bounds(pid, K)
     np.testing.assert_array_equal(first, start)
     np.testing.assert_array_equal(last, end - 1)
-    lo, hi = (np.asarray(x) for x in S.target_bounds(vp, jnp.asarray(target)))
+    lo, hi = (np.asarray(x) for x in pn.target_bounds(vp, jnp.asarray(target)))
     E = 0.5 * E_max
     for p in range(K):
         assert abs(lo[p] - min(max(E, 0.0), E_max)) < 1e-6, p
@@ -438,7 +439,7 @@ def ref_split(dE_first, dE_then, pid, target, then_high, E_max):
 
 
 SPLIT_T, SPLIT_K = 40, 3
-split = xla.jit(S.split_sides)
+split = xla.jit(pn.split_sides)
 
 
 def draw_pieces(data):
@@ -487,7 +488,7 @@ def test_split_sides_is_the_first_crossing_where_the_sides_are_ordered(data):
                 assert ((e[p] > 0) == then_high[p]) == side, (p, ts)
 
 
-excursions = xla.jit(S.excursion_pieces)
+excursions = xla.jit(pn.excursion_pieces)
 
 
 @settings(max_examples=40, deadline=None)
@@ -514,7 +515,7 @@ def test_excursion_pieces_equal_their_loop(data):
 
 
 def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam, pred=None):
-    """`strategies.join_steps` on pred (PRED) by a loop over the pieces: t0 and t1 where Level 0
+    """`plan.join_steps` on pred (PRED) by a loop over the pieces: t0 and t1 where Level 0
     takes the switch from s_first's state before the step into s_then's at it
     (`ref_level0_takes`), else the nearest step before t0 / after t1 whose predecessor both run
     in the same state (the piece's start / end at the latest). Returns [j0, j1], (K,) each."""
@@ -538,7 +539,7 @@ def ref_join_steps(vp, pid, t0, t1, s_first, s_then, lam, pred=None):
     return js
 
 
-join = xla.jit(S.join_steps)
+join = xla.jit(pn.join_steps)
 
 
 def test_join_steps_equals_a_loop_and_finds_switches_level0_refuses():
@@ -620,7 +621,7 @@ def loop_sustaining(kern: Kernels, lam, pid, target, n_bisect=14, gap=0.05, tol_
         then_high = np.where(charge_first, e_b, e_a) > 0
         dEs = first_then(charge_first, dE_a, dE_b)
         t0, t1 = piece_bounds(pid, K)
-        for _ in range(S._split_bisections(T)):
+        for _ in range(pn._split_bisections(T)):
             m = (t0 + t1) // 2
             e = ref_joined_error(*dEs, pid, target, m, E0, E_max)
             on = (e > 0) == then_high
@@ -672,7 +673,7 @@ def test_sustaining_level1_equals_its_dps_run_one_by_one(mass, target):
         assert np.all(sides[np.asarray(pid) == 0] >= 0)
     if mass != VP.mass:  # ... and their order turned
         assert flip[0] and np.all(sides >= 0)
-    assert n_dp + 1 == S.sustaining_dps(T)  # and the final plan's
+    assert n_dp + 1 == pn.sustaining_dps(T)  # and the final plan's
     np.testing.assert_allclose(np.asarray(lam_t), want, rtol=1e-12, atol=1e-12)
     # the final plan as Level 1 alone gives it, switching costs included, on the path the
     # pieces take: the final DP's, or the sides' plans joined
@@ -712,7 +713,7 @@ def test_guard_lambda_is_each_pieces_side_where_it_jumps(data):
         lam=jnp.asarray(lam), lam_lo=jnp.asarray(lam_lo), lam_hi=jnp.asarray(lam_hi),
         boundaries=jnp.asarray(bnd), dE_plus=jnp.asarray(dE_plus),
         dE_minus=jnp.asarray(dE_minus), sel=jnp.asarray(sel))
-    got = np.asarray(S.guard_lambda(c2, tol, gap))
+    got = np.asarray(pn.guard_lambda(c2, tol, gap))
     lo_b, hi_b = l2.LAM_BRACKET
     for k in range(_GT):
         p = min(max(i for i in range(_GK + 1) if bnd[i] <= k), _GK - 1)

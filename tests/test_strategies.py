@@ -19,6 +19,8 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from jaxems import plant as pl
+from jaxems import bound as bd
+from jaxems import plan as pn
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.io import load_route
@@ -361,9 +363,9 @@ def test_dp_bound_grid_refinement():
     pred = LEVEL3(route, VP, 1.0, n)
     opts = S.Options()
     assert opts.dp_lams == 48
-    tables = xla.jit(S.bound_tables, static_argnums=(2, 3))
+    tables = xla.jit(bd.bound_tables, static_argnums=(2, 3))
     E0 = float(VP.soc0 * VP.E_b_max)
-    fuel, dp = {}, xla.jit(S.bound_dp, static_argnums=4)
+    fuel, dp = {}, xla.jit(bd.bound_dp, static_argnums=4)
     for n_E, n_lams in ((101, 48), (401, 48), (101, 96)):
         tab = tables(VP, pred, 1.0, opts._replace(dp_lams=n_lams), sw.SwitchCostParams())
         bp = dp(VP, pred, tab, E0, n_E, opts.dp_penalty)
@@ -399,7 +401,7 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
     pred = LEVEL3(route, VP, 1.0, S.steps_for_batch(route, VP))
     prm = sw.SwitchCostParams()
     opts = S.Options()
-    tab = xla.jit(S.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts, prm)
+    tab = xla.jit(bd.bound_tables, static_argnums=(2, 3))(VP, pred, 1.0, opts, prm)
     m = np.asarray(pred.mask)
     n = int(m.sum())
     P_d, v, grade = (np.asarray(a)[:n] for a in (pred.P_d, pred.v, pred.grade))
@@ -409,7 +411,7 @@ def test_dp_bound_tables_are_the_splits_and_switching_costs():
         ref = R.split_table(VP, P_d, v, lam)
         feas = ref.feasible.reshape(n, -1)
         some = feas.any(axis=1, keepdims=True)  # a step beyond every state's reach is free
-        fuel = np.where(some, np.where(feas, ref.P_f.reshape(n, -1), S.BIG), 0.0)
+        fuel = np.where(some, np.where(feas, ref.P_f.reshape(n, -1), bd.BIG), 0.0)
         Pb = np.where(some, ref.P_b.reshape(n, -1), 0.0)
         # (the table's split is analytic, the reference's a search on a function that is flat
         # to rounding within about 0.01 W of its minimum)
@@ -466,17 +468,17 @@ def test_dp_bounds_plan_meets_its_path_where_it_reaches_the_limits():
     @xla.jit
     def plans(vp, params):
         pred = S.level3(route, vp, 1.0, n)
-        bp = S.bound_dp(vp, pred, S.bound_tables(vp, pred, 1.0, opts, params), E0,
+        bp = bd.bound_dp(vp, pred, bd.bound_tables(vp, pred, 1.0, opts, params), E0,
                         opts.dp_n_E, opts.dp_penalty)
         mode, gear = bp.state // 12, bp.state % 12
         zero = jnp.zeros_like(pred.v)
-        pieces = S.bound_pieces(vp, pred.mask, bp.E, bp.E_end, zero, E0, opts.dp_n_E)
-        one = S.single_piece(n, zero.dtype)
+        pieces = bd.bound_pieces(vp, pred.mask, bp.E, bp.E_end, zero, E0, opts.dp_n_E)
+        one = pn.single_piece(n, zero.dtype)
         before = opts._replace(trim_excursions=False)  # the one piece as the trim had it
         out = []
         for pc, o in ((pieces, opts), (one, before)):
-            plan = S.make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, 1.0, o, pc)
-            dE = S.steps_energy(vp, pred, mode, gear, plan.P_b, 1.0)
+            plan = pn.make_plan(vp, mode, gear, bp.P_b, bp.lam, pred, 1.0, o, pc)
+            dE = pn.steps_energy(vp, pred, mode, gear, plan.P_b, 1.0)
             off = jnp.max(jnp.where(pred.mask, jnp.abs(plan.E_ref - bp.E), 0.0))
             empty = jnp.sum(pred.mask & (plan.E_ref <= 1.0) & (dE < -1.0))
             out.append((off, empty))
