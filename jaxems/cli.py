@@ -5,7 +5,7 @@
                                                          Level 3 speed and power prediction
     jaxems simulate ROUTE [--vehicle NAME|PATH] [--mass KG] [--battery-MJ X] [--initial-soc F]
                     [--strategy NAME] [--dt S] [--n-iter N] [--option NAME=VALUE ...]
-                    [--json]                             one strategy on the closed-loop plant
+                    [--json] [--csv FILE] [--plot FILE]  one strategy on the closed-loop plant
     jaxems compare ROUTE [--vehicle ...] [--mass KG] [--battery-MJ X] [--strategies A,B,...]
                    [--option NAME=VALUE ...] [--json]    fuel and savings of several strategies
 
@@ -89,6 +89,43 @@ def _load(args):
 
     path = resolve_route(args.route)
     return route_name(path), path, load_route(path, ds=args.ds)
+
+
+def check_output(path: str | None, flag: str) -> Path | None:
+    """An output file named on the command line, checked before anything runs: its directory
+    exists and is writable and the path is not a directory (else CLIError naming the flag), so
+    that a long run does not end without its file."""
+    if path is None:
+        return None
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise CLIError(f"{flag}: {path} is a directory")
+    if not parent.is_dir():
+        raise CLIError(f"{flag}: the directory {parent} does not exist")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise CLIError(f"{flag}: the directory {parent} is not writable")
+    return p
+
+
+def write_csv(path: Path, columns: dict) -> None:
+    """Columns (name -> (n,) array) as a CSV file with a header line, written whole or not at
+    all; numbers to 10 significant digits, whole numbers and text as they are."""
+    import numpy as np
+
+    from .sweep import atomic_write_bytes
+
+    def fmt(a):
+        a = np.asarray(a)
+        if a.dtype.kind in "iub":
+            return [str(int(x)) for x in a]
+        if a.dtype.kind in "fc":
+            return [f"{x:.10g}" for x in a]
+        return [str(x) for x in a]
+
+    cols = [fmt(a) for a in columns.values()]
+    lines = [",".join(columns)] + [",".join(row) for row in zip(*cols, strict=True)]
+    atomic_write_bytes(path, ("\n".join(lines) + "\n").encode("utf-8"))
 
 
 def comma_list(text: str, what: str | None = None) -> list[str]:
@@ -189,9 +226,9 @@ def cmd_predict(args) -> int:
 
     from .levels.velocity import energy_summary, predict_velocity
     from .strategies import check_dt
-    from .sweep import atomic_write_bytes
 
     dt = check_dt(args.dt)
+    csv = check_output(args.csv, "--csv")
     _setup_jax()
     name, path, route = _load(args)
     vp = _load_vehicle(args)
@@ -203,12 +240,11 @@ def cmd_predict(args) -> int:
         "mass_kg": float(vp.mass),
         "dt_s": dt,
     } | energy_summary(pred)
-    if args.csv:
+    if csv is not None:
         m = np.asarray(pred.mask)
-        cols = [np.asarray(x)[m] for x in (pred.t, pred.s, pred.v, pred.a, pred.grade, pred.P_d)]
-        lines = ["t_s,s_m,v_m_s,a_m_s2,grade,P_d_W"]
-        lines += [",".join(f"{x:.10g}" for x in row) for row in zip(*cols, strict=True)]
-        atomic_write_bytes(Path(args.csv), ("\n".join(lines) + "\n").encode("utf-8"))
+        names = ("t_s", "s_m", "v_m_s", "a_m_s2", "grade", "P_d_W")
+        write_csv(csv, {k: np.asarray(x)[m] for k, x in zip(
+            names, (pred.t, pred.s, pred.v, pred.a, pred.grade, pred.P_d), strict=True)})
     if args.json:
         print(json.dumps(out))
         return 0
@@ -286,6 +322,7 @@ def cmd_simulate(args) -> int:
     check_strategy(args.strategy)  # before anything is loaded or compiled
     if args.n_iter is not None and args.n_iter < 1:
         raise CLIError(f"--n-iter: must be a whole number >= 1 (got {args.n_iter})")
+    csv, plot = check_output(args.csv, "--csv"), check_output(args.plot, "--plot")
     _setup_jax()
     vp = _load_vehicle(args)  # mass and battery validated here
     path = resolve_route(args.route)
@@ -308,6 +345,12 @@ def cmd_simulate(args) -> int:
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
     # the last plan's Level 2 flags by name (None: a strategy without the iteration's Level 2)
     level2 = out["level2_status"] = level2_names(out["level2_status"])
+    if csv is not None:
+        write_csv(csv, res.trace_columns())
+    if plot is not None:
+        from .report import plot_run
+
+        plot_run(res, vp, args.strategy, plot)
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0
@@ -327,6 +370,8 @@ def cmd_simulate(args) -> int:
     if level2 is not None:
         hint = " (more pieces: --option l2_pieces=N)" if "pieces-exhausted" in level2 else ""
         rows.append(("Level 2 (last plan)", (", ".join(level2) or "converged") + hint))
+    rows += [(label, str(p)) for label, p in (("time series", csv), ("plot", plot))
+             if p is not None]
     _print_table(rows)
     return 0
 
@@ -343,6 +388,12 @@ def register_simulate(sub) -> None:
                         "dp-bound, multilevel-eco")
     p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
                    help="multilevel iterations (default 2)")
+    p.add_argument("--csv", metavar="FILE",
+                   help="write the plant's time series (t, s, v, v_ref, E_b, mode, gear, powers, "
+                        "lambda_b), a row a step")
+    p.add_argument("--plot", metavar="FILE",
+                   help="write the run's traces over distance (P_d and P_m, mode, gear, E_b, v) "
+                        "as a PNG")
     p.set_defaults(func=cmd_simulate)
 
 

@@ -47,6 +47,20 @@ def _plt():
     return plt
 
 
+def save_png(fig, path, dpi: int = 100) -> Path:
+    """Write a figure as a PNG, whole or not at all (`sweep.atomic_write_bytes`), and close
+    it."""
+    import io
+
+    from .sweep import atomic_write_bytes
+
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=dpi, format="png")
+    _plt().close(fig)
+    atomic_write_bytes(Path(path), buf.getvalue())
+    return Path(path)
+
+
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
 
@@ -164,8 +178,7 @@ def _heatmap_figure(path: Path, panels: list[tuple[str, object]], suptitle: str)
         im = _heatmap(ax, tab, title, vlim)
     fig.colorbar(im, ax=axes[0].tolist(), label="saving (%)")
     fig.suptitle(suptitle, fontsize=10)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save_png(fig, path)
     return True
 
 
@@ -231,8 +244,7 @@ def plot_fuel(out: Path, df) -> Path | None:
                  fontsize=9)
     ax.legend(fontsize=8)
     p = out / "fuel_per_strategy.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
+    save_png(fig, p)
     return p
 
 
@@ -260,8 +272,7 @@ def plot_distribution(out: Path, df, ref: str) -> Path | None:
     if len(_routes(df)) <= 12:
         ax.legend(fontsize=7, loc="best")
     p = out / "saving_distribution.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
+    save_png(fig, p)
     return p
 
 
@@ -282,8 +293,7 @@ def plot_best_battery(out: Path, best) -> Path | None:
     ax.set_title("best battery size per mass (fleet saving over all routes)", fontsize=9)
     ax.legend(fontsize=7)
     p = out / "best_battery.png"
-    fig.savefig(p, dpi=100)
-    plt.close(fig)
+    save_png(fig, p)
     return p
 
 
@@ -521,13 +531,12 @@ if __name__ == "__main__":
     sys.exit(_main())
 
 
-MODE_NAMES = ["Mc", "Me", "Mm", "Mo"]
-
-
 def plot_run(res, vp, title: str, path: Path, lvl2: dict | None = None) -> None:
     """Five panels over distance (P_d and P_m, mode, gear, E_b, v and v_ref) of a simulated run
     (`jaxems.simulate` Result) to a PNG; `lvl2` adds Level 2's decisions as dashed lines
-    (Figures A2-A4 of the paper)."""
+    (Figures A2-A4 of the paper). The file is written whole or not at all."""
+    from .levels.powersplit import MODE_SHORT
+
     plt = _plt()
     tr = res.trace
     d = res.as_dict()
@@ -557,7 +566,7 @@ def plot_run(res, vp, title: str, path: Path, lvl2: dict | None = None) -> None:
         ax[3].axhline(y, color="0.6", lw=0.6)
     ax[0].set_ylabel("power (kW)")
     ax[1].set_ylabel("mode")
-    ax[1].set_yticks(range(4), MODE_NAMES)
+    ax[1].set_yticks(range(4), MODE_SHORT)
     ax[2].set_ylabel("gear")
     ax[3].set_ylabel("E_b (MJ)")
     ax[4].set_ylabel("v (km/h)")
@@ -569,5 +578,4 @@ def plot_run(res, vp, title: str, path: Path, lvl2: dict | None = None) -> None:
                     f"dE_b {d['delta_Eb_J'] / 1e6:+.2f} MJ, lambda_b {d['lambda_b']:.3f}",
                     fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_png(fig, path, dpi=110)

@@ -79,6 +79,67 @@ def test_simulate_battery_override_and_table(capsys):
                for line in lines)
 
 
+TRACE_HEADER = ["t_s", "s_m", "v_m_s", "v_ref_m_s", "E_b_J", "mode", "gear", "P_d_W", "P_e_W",
+                "P_m_W", "P_b_W", "P_f_W", "P_brake_W", "lambda_b"]
+
+
+def test_simulate_writes_its_time_series_and_plot(capsys, tmp_path):
+    import csv
+
+    import numpy as np
+
+    from jaxems import simulate
+
+    table, png = tmp_path / "run.csv", tmp_path / "run.png"
+    code, out, err = run(capsys, "simulate", "short_track", "--strategy", "conventional",
+                         "--mass", "25000", "--json", "--csv", str(table), "--plot", str(png))
+    assert code == 0, err
+    d = json.loads(out)
+    with open(table, newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == TRACE_HEADER
+    cols = {k: [r[i] for r in rows[1:]] for i, k in enumerate(TRACE_HEADER)}
+    num = {k: np.array(v, float) for k, v in cols.items() if k != "mode"}
+    # a row a step of the trip, from the start: steps of 1 s that start before its end
+    t = num["t_s"]
+    assert t[0] == 0.0 and np.all(np.diff(t) == 1.0)
+    assert t[-1] < d["trip_time_s"] <= t[-1] + 1.0
+    assert num["s_m"][0] == 0.0 and np.all(np.diff(num["s_m"]) >= 0)
+    assert num["s_m"][-1] < d["length_m"]
+    # the conventional truck: the engine alone (or the open driveline), the battery untouched
+    assert set(cols["mode"]) <= {"Me", "Mo"} and "Me" in cols["mode"]
+    assert np.all((num["gear"] >= 1) & (num["gear"] <= 12)) and len(set(cols["gear"])) > 1
+    assert np.all(num["E_b_J"] == 2.0e6) and np.all(num["P_b_W"] == 0) and np.all(num["P_m_W"] == 0)
+    # the fuel power over the steps is the run's fuel, but for the synchronisation energy the
+    # engine supplies at switches, which only the run's total counts
+    fuel_steps = float(np.sum(num["P_f_W"]) * 1.0)
+    assert 0.99 * d["fuel_J"] <= fuel_steps <= d["fuel_J"]
+    # the same columns as the Python API's, to the CSV's 10 digits
+    api = simulate("short_track", strategy="conventional", mass_kg=25000.0).trace_columns()
+    assert list(api) == TRACE_HEADER
+    for k in TRACE_HEADER:
+        if k == "mode":
+            assert list(api[k]) == cols[k]
+        else:
+            np.testing.assert_allclose(num[k], api[k], rtol=1e-9, atol=1e-6, err_msg=k)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.csv", "run.png"]  # no temporaries
+
+
+def test_simulate_checks_its_output_files_before_running(capsys, tmp_path, monkeypatch):
+    from jaxems import strategies
+
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
+    for flag, path, words in [
+        ("--csv", tmp_path / "missing" / "run.csv", "--csv: the directory"),
+        ("--plot", tmp_path, "--plot: " + str(tmp_path) + " is a directory"),
+    ]:
+        code, out, err = run(capsys, "simulate", "short_track", flag, str(path))
+        assert code == 1 and out == ""
+        assert err.count("\n") == 1 and err.startswith("jaxems: error: ") and words in err
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_simulate_registered():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert {"route", "predict", "simulate"} <= set(sub.choices)
