@@ -7,8 +7,9 @@ as the plant holds them). Where E_ref is at empty and the plan's own model
 (`plan.steps_energy`) still draws from the battery, the plant cannot do what the plan
 does and runs the engine instead. For each stretch of `--segment-km` the script prints the
 plant's fuel (its trace's, `Trace.P_f`: the synchronisation energy the engine supplies where
-the battery cannot is in the run's fuel_J only) against the plan's Level 1 split (`powersplit.split_state` of the plan's state
-at its costate and the predicted demand, before the plan's battery-power trim), the plan's
+the battery cannot is in the run's fuel_J only) against the plan's Level 1 split
+(`powersplit.split_state` of the plan's state at its costate and the predicted demand,
+before the plan's battery-power trim), the plan's
 steps at an empty battery that still draw from it, and the plan's and the plant's battery
 energy at the stretch's end. Float64; one vehicle, half charge.
 
@@ -60,7 +61,7 @@ def tracking(res, vp, segment_m: float, dt: float = 1.0) -> dict:
     plan = last_plan(res)
     mask = np.asarray(pred.mask)
     dE = np.asarray(pn.steps_energy(vp, pred, jnp.asarray(plan.mode), jnp.asarray(plan.gear),
-                                   jnp.asarray(plan.P_b), dt))
+                                    jnp.asarray(plan.P_b), dt))
     empty = mask & (plan.E_ref <= EMPTY_J) & (dE < -EMPTY_J)
     split = split_steps(vp, pred.P_d, pred.v, jnp.asarray(plan.lam), jnp.asarray(plan.mode),
                         jnp.asarray(plan.gear))

@@ -45,15 +45,13 @@ def init_state(pred: l3.Prediction):
 
 
 def level1(vp, pred, lam, dt, params, fast=None, trac=None, switch_costs=True, fixed=None,
-            path_of=None):
+           path_of=None):
     """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice; trac:
     `level1.traction_table` and fixed: `powersplit.fixed_split` of the prediction, if at hand;
     switch_costs: `level1._result`'s; path_of: the path returned, from the DP's)."""
     m0, g0 = init_state(pred)
     return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
                            fast, trac, switch_costs, fixed, path_of)
-
-
 
 
 class Plan(NamedTuple):
@@ -604,7 +602,7 @@ def sustaining_level1(vp, pred, lam, dt, params, pid, target, n_bisect: int = 14
         lam_t = costate(phase, i, a, b, charge_first, best, t0, t1, js)
         # the switching costs along the path only for the final plan, which returns them
         r = level1(vp, pred, lam_t, dt, params, fast, trac, phase == 4, fixed,
-                    final_path(phase, charge_first, best, js, states))
+                   final_path(phase, charge_first, best, js, states))
         dE = steps_energy(vp, pred, r.mode, r.gear, r.P_b, dt)
         e = piece_error(dE, pid, target)  # (K,) plan's energy change per piece minus target
         # within the battery's limits, as the plant holds them, and what the limits hold (the

@@ -261,11 +261,12 @@ def test_mpc_gap_level1_at_a_given_costate_is_the_mpc(capsys):
 def test_plan_tracking_counts_what_the_plan_asks_of_an_empty_battery(capsys, strategy):
     """plan_tracking on the short track at 25 t with 3 MJ (multilevel's plan asks 1.57 MJ of an
     empty battery on 22 steps, dp-bound's 0.09 MJ on 6; with 2 MJ, 0.35 MJ on 15 steps each
-    until the trim split the pieces at the plans' excursions): one JSON object; the stretches' plant fuel sums to the trace's, which
-    is the run's less the synchronisation energy the engine supplied (at most the run's),
-    their steps at empty to the summary's and to its runs', whose energy asked is the
-    summary's; every such step is one where the plan's battery is at empty and its own model
-    draws from it, as a loop over the plan finds them; an unknown route is one line."""
+    until the trim split the pieces at the plans' excursions): one JSON object; the
+    stretches' plant fuel sums to the trace's, which is the run's less the synchronisation
+    energy the engine supplied (at most the run's), their steps at empty to the summary's and
+    to its runs', whose energy asked is the summary's; every such step is one where the plan's
+    battery is at empty and its own model draws from it, as a loop over the plan finds them;
+    an unknown route is one line."""
     track = plan_tracking
     d, err = main_json(track, ["--route", "short_track", "--mass", "25000", "--battery-MJ", "3",
                                "--strategy", strategy, "--segment-km", "0.3"], capsys)

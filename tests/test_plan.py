@@ -64,7 +64,7 @@ def kernels(mass) -> Kernels:
             vp, pred, lam_t, 1.0, PARAMS, path_of=lambda p: jnp.where(sides >= 0, sides, p))),
         xla.jit(lambda mode, gear, P_b: pn.steps_energy(vp, pred, mode, gear, P_b, 1.0)),
         xla.jit(lambda lam, pid, target: pn.sustaining_level1(vp, pred, lam, 1.0, PARAMS, pid,
-                                                             target)))
+                                                              target)))
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -80,7 +80,7 @@ def _short_track():
 
 
 trim_vp = xla.jit(lambda vp, target: pn.trim_battery_power(vp, PRED, R1.mode, R1.gear, R1.P_b,
-                                                          PID, target, 1.0))
+                                                           PID, target, 1.0))
 trim = lambda target: trim_vp(VP, target)  # noqa: E731
 path = xla.jit(pn.battery_path)
 
@@ -114,12 +114,12 @@ def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
             gear[k] = rng.integers(0, 12) if new else gear[k - 1]
         P_b = rng.uniform(-150e3, 150e3, T)
         got = np.asarray(pn.steps_energy(VP, PRED, jnp.asarray(mode), jnp.asarray(gear),
-                                        jnp.asarray(P_b), 1.0))
+                                         jnp.asarray(P_b), 1.0))
         want = ref_plan_energy(VP, PRED.P_d, PRED.v, mode, gear, P_b, 1.0, mask)
         np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-6)
     const = np.full(T, 5, np.int32)
     got = np.asarray(pn.steps_energy(VP, PRED, jnp.asarray(const * 0), jnp.asarray(const),
-                                    jnp.asarray(P_b), 1.0))
+                                     jnp.asarray(P_b), 1.0))
     plain = -np.asarray(pt.battery_internal(VP, jnp.asarray(P_b)))
     np.testing.assert_allclose(got, np.where(mask, plain, 0.0), rtol=1e-12)
     # braking, the step before a switch recuperates nothing (the plant opens the driveline
@@ -131,7 +131,7 @@ def test_plan_energy_matches_a_loop_and_drops_what_switches_open():
     g = np.full(T, 5, np.int32)
     g[k:] = 4
     e = np.asarray(pn.steps_energy(VP, PRED, jnp.zeros(T, jnp.int32), jnp.asarray(g),
-                                  jnp.full(T, -100e3), 1.0))
+                                   jnp.full(T, -100e3), 1.0))
     assert e[k - 1] <= 0.0 < e[k - 2]
     assert 0.0 < e[k] < e[k - 2]
 

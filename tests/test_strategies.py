@@ -469,7 +469,7 @@ def test_dp_bounds_plan_meets_its_path_where_it_reaches_the_limits():
     def plans(vp, params):
         pred = S.level3(route, vp, 1.0, n)
         bp = bd.bound_dp(vp, pred, bd.bound_tables(vp, pred, 1.0, opts, params), E0,
-                        opts.dp_n_E, opts.dp_penalty)
+                         opts.dp_n_E, opts.dp_penalty)
         mode, gear = bp.state // 12, bp.state % 12
         zero = jnp.zeros_like(pred.v)
         pieces = bd.bound_pieces(vp, pred.mask, bp.E, bp.E_end, zero, E0, opts.dp_n_E)
