@@ -203,7 +203,7 @@ def main(argv=None) -> int:
     g1 = jnp.asarray(rng.uniform(-0.05, 0.05, N), jnp.float32)
     Pd1 = jnp.asarray(rng.uniform(-1e5, 2e5, N), jnp.float32)
     prm = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), sw.SwitchCostParams())
-    tb = xla.jit(l1._tables)(vp1, Pd1, v1, g1, jnp.float32(-2.0), jnp.float32(0.01), prm)
+    tb = xla.jit(l1.dp_inputs)(vp1, Pd1, v1, g1, jnp.float32(-2.0), jnp.float32(0.01), prm)
     init = jnp.where(jnp.arange(S) == 2 * 12 + 9, 0.0, jnp.inf).astype(jnp.float32)
 
     @xla.jit
@@ -221,7 +221,7 @@ def main(argv=None) -> int:
 
     @xla.jit
     def mpc_solve_with_tables(vp, P_d, v, grade, lam, init):
-        t = l1._tables(vp, P_d, v, grade, lam, jnp.float32(0.01), prm)
+        t = l1.dp_inputs(vp, P_d, v, grade, lam, jnp.float32(0.01), prm)
         return l1.solve_dp(
             vp.dt_M, vp.dt_G, t.stage, t.xs, t.consts, t.dconsts, init, None, first=True
         )

@@ -11,7 +11,7 @@ is jitted on its own, on the outputs of the stage before it:
 - level3: the velocity prediction (`strategies.level3`);
 - level2: the costate by bisection with the battery's limits (`battery.costate_kernel`);
 - level1_tables: one Level 1 DP's inputs, the Hamiltonian of every mode and gear and the
-  switching costs (`level1._tables`); level1_hamiltonian: the Hamiltonian table alone;
+  switching costs (`level1.dp_inputs`); level1_hamiltonian: the Hamiltonian table alone;
 - level1_viterbi: one Level 1 DP's recursion and backward pass (`level1.solve_dp`);
   level1_viterbi_cost_only: the forward recursion without the argmin (what the back-pointers
   add is the difference);
@@ -107,7 +107,7 @@ def main(argv=None) -> int:
     trac = xla.jit(v(lambda vp, p: l1.traction_table(vp, p.v, p.grade, params)))(vps, pred)
 
     def tables(vp, p, lam_t, tr):
-        return l1._tables(vp, p.P_d, p.v, p.grade, lam_t, dt, params, tr)
+        return l1.dp_inputs(vp, p.P_d, p.v, p.grade, lam_t, dt, params, tr)
 
     tb = timed("level1_tables", v(tables), vps, pred, lam, trac)
     timed("level1_hamiltonian", v(lambda vp, p, lam_t: hamiltonian_table(

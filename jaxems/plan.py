@@ -46,12 +46,13 @@ def init_state(pred: l3.Prediction):
 
 def level1(vp, pred, lam, dt, params, fast=None, trac=None, switch_costs=True, fixed=None,
            path_of=None):
-    """Level 1 over the whole prediction (``fast``: `level1.solve_dp`'s static choice; trac:
-    `level1.traction_table` and fixed: `powersplit.fixed_split` of the prediction, if at hand;
-    switch_costs: `level1._result`'s; path_of: the path returned, from the DP's)."""
+    """Level 1 over the whole prediction at costate lam ((T,) or ()), from the state before
+    step 0 that `init_state` gives: `level1.level1_kernel` on the prediction's demand, speed,
+    gradient and mask (fast, trac, fixed, switch_costs, path_of: as it takes them).
+    Returns `Level1Result`."""
     m0, g0 = init_state(pred)
-    return l1._level1_full(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0, params,
-                           fast, trac, switch_costs, fixed, path_of)
+    return l1.level1_kernel(vp, pred.P_d, pred.v, pred.grade, lam, dt, pred.mask, m0, g0,
+                            params, fast, trac, switch_costs, fixed, path_of)
 
 
 class Plan(NamedTuple):

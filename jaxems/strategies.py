@@ -558,7 +558,7 @@ def mpc_level1(p: MpcParams, vp, obs: pl.Obs, lam, h1: int) -> pl.Command:
     """The MPC's Level 1: a DP over the next h1 samples from the measured mode and gear at
     costate lam (), its first decision applied; the plant splits the power at lam."""
     win1 = lambda a: jax.lax.dynamic_slice_in_dim(a, obs.j + 1, h1)  # noqa: E731
-    tb = l1._tables(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
+    tb = l1.dp_inputs(vp, win1(p.P_d), win1(p.v), win1(p.grade), lam, p.dt, p.switch)
     S = tb.stage.shape[1]
     n_g = S // ps.N_MODES
     s_cur = obs.mode * n_g + obs.gear

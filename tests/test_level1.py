@@ -140,8 +140,8 @@ def test_level1_full_equals_numpy_viterbi():
     assert int(r.mode[6]) == ps.MM and int(r.mode[10]) in (ps.MC, ps.ME)
     # the traction table handed in (as the Level 1 that keeps Level 2's plan does) changes nothing
     trac = l1.traction_table(vp, v, grade, PRM)
-    r2 = l1._level1_full_jit(vp, P_d, v, grade, lam, DT, np.ones(len(v), bool), ps.MO, 0, PRM,
-                             trac=trac)
+    r2 = l1._level1_kernel_jit(vp, P_d, v, grade, lam, DT, np.ones(len(v), bool), ps.MO, 0, PRM,
+                               trac=trac)
     for f in ("state", "P_b", "cost"):
         np.testing.assert_array_equal(np.asarray(getattr(r2, f)), np.asarray(getattr(r, f)))
 
@@ -205,7 +205,7 @@ def test_switching_costs_reduce_switching():
 
 @xla.jit
 def _full_and_merged(vp, P_d, v, grade, lam):
-    tb = l1._tables(vp, P_d, v, grade, lam, DT, PRM)
+    tb = l1.dp_inputs(vp, P_d, v, grade, lam, DT, PRM)
     init = l1._init_cost(jnp.int32(ps.MO), jnp.int32(0), 48, 12, tb.stage.dtype)
     mask = jnp.ones(P_d.shape, bool)
     args = (vp.dt_M, vp.dt_G, tb.stage, tb.xs, tb.consts, tb.dconsts, init, mask)

@@ -78,7 +78,7 @@ def test_the_library_compiles_with_it():
     # the jitted entry points of the levels and the strategies are `xla.jit`s
     from jaxems import strategies
     from jaxems.levels import battery, velocity
-    for f in (l1._level1_full_jit, l1._level1_mpc_jit, battery._costate_jit,
+    for f in (l1._level1_kernel_jit, l1._level1_mpc_jit, battery._costate_jit,
               velocity._profile_jit, *strategies._RUN.values()):
         assert isinstance(f, xla._Jit), f
     assert [f._elemental for f in strategies._RUN.values()] == [True, False]

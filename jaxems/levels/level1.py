@@ -356,7 +356,9 @@ def transition_cost(vp: VehicleParams, s_from, s_to, v, grade, lam, params: sw.S
 
 
 # --------------------------------------------------------------------------------- tables
-class _Tables(NamedTuple):
+class DPInputs(NamedTuple):
+    """What the Level 1 DP needs of one prediction at one costate trace (`dp_inputs`)."""
+
     P_d: jax.Array  # (T,) W
     stage: jax.Array  # (T, S) J
     xs: TransitionInputs  # (T, ...)
@@ -367,7 +369,7 @@ class _Tables(NamedTuple):
     brake: jax.Array  # (T, 3, S) J, `braking_loss`
 
 
-def _tables(vp, P_d, v, grade, lam, dt, params, trac=None, fixed=None) -> _Tables:
+def dp_inputs(vp, P_d, v, grade, lam, dt, params, trac=None, fixed=None) -> DPInputs:
     """The DP's inputs; trac: `traction_table(vp, v, grade, params)` and fixed:
     `powersplit.fixed_split(vp, P_d, v)` if already at hand (neither depends on lam).
     Only the Hamiltonian H of the split table is kept (the path's split is evaluated again
@@ -386,7 +388,7 @@ def _tables(vp, P_d, v, grade, lam, dt, params, trac=None, fixed=None) -> _Table
     xs = xs._replace(trac=xs.trac + params.weight * brake)
     consts = transition_consts(vp, params.averaged)
     dconsts = dense_consts(vp, params.averaged)
-    return _Tables(P_d, stage, xs, consts, dconsts, none, lam, brake)
+    return DPInputs(P_d, stage, xs, consts, dconsts, none, lam, brake)
 
 
 def _init_cost(init_mode, init_gear, S, n_g, dtype):
@@ -395,7 +397,7 @@ def _init_cost(init_mode, init_gear, S, n_g, dtype):
     return jnp.where(init_mode < 0, jnp.zeros(S, dtype), onehot)
 
 
-def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params,
+def _result(vp, tb: DPInputs, path, start, v, grade, dt, mask, params,
             switch_costs=True) -> Level1Result:
     """The path's decisions and powers; switch_costs: a bool () not batched, or True: where it
     is False, switch_cost is 0 and cost counts the stages only (a caller that needs neither
@@ -440,12 +442,16 @@ def _result(vp, tb: _Tables, path, start, v, grade, dt, mask, params,
 
 
 # ------------------------------------------------------------------------------ full horizon
-def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
-                 trac=None, switch_costs=True, fixed=None, path_of=None):
-    """path_of: None, or a function of the DP's path (T,) of states giving the path whose
-    decisions and costs are returned (at this costate)."""
+def level1_kernel(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, fast=None,
+                  trac=None, switch_costs=True, fixed=None, path_of=None):
+    """The kernel of `level1_full` (its inputs not checked, a pure function to jit or vmap):
+    the DP's inputs (`dp_inputs`), the DP (`solve_dp`) and the path's decisions and powers
+    (`Level1Result`). fast, trac, fixed: as `solve_dp` and `dp_inputs` take them;
+    switch_costs: whether the path's switching costs are evaluated; path_of: None, or a
+    function of the DP's path (T,) of states giving the path whose decisions and costs are
+    returned (at this costate)."""
     TRACES["level1_full"] += 1
-    tb = _tables(vp, P_d, v, grade, lam, dt, params, trac, fixed)
+    tb = dp_inputs(vp, P_d, v, grade, lam, dt, params, trac, fixed)
     S = tb.stage.shape[1]
     n_g = S // N_MODES
     init = _init_cost(init_mode, init_gear, S, n_g, tb.stage.dtype)
@@ -455,7 +461,7 @@ def _level1_full(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params,
     return _result(vp, tb, path, r.start, v, grade, dt, mask, params, switch_costs)
 
 
-_level1_full_jit = jit(_level1_full)
+_level1_kernel_jit = jit(level1_kernel)
 
 
 def _check_inputs(vp, P_d, v, grade, mask):
@@ -505,13 +511,13 @@ def level1_full(
     """
     _check_inputs(vp, P_d, v, grade, mask)
     mask, im, ig, params = _defaults(vp, P_d, mask, init_mode, init_gear, params)
-    return _level1_full_jit(vp, P_d, v, grade, lam, dt, mask, im, ig, params)
+    return _level1_kernel_jit(vp, P_d, v, grade, lam, dt, mask, im, ig, params)
 
 
 # --------------------------------------------------------------------------- receding horizon
 def _level1_mpc(vp, P_d, v, grade, lam, dt, mask, init_mode, init_gear, params, horizon):
     TRACES["level1_mpc"] += 1
-    tb = _tables(vp, P_d, v, grade, lam, dt, params)
+    tb = dp_inputs(vp, P_d, v, grade, lam, dt, params)
     T, S = tb.stage.shape
     n_g = S // N_MODES
     N = horizon
@@ -592,7 +598,7 @@ def _level1_batch(vps, P_d, v, grade, mask, lam, dt, init_mode, init_gear, param
     P_db, v_b, g_b, m_b, lam_b = P_d[ri], v[ri], grade[ri], mask[ri], lam[li]
 
     def one(vp, P_d, v, grade, lam):
-        return _tables(vp, P_d, v, grade, lam, dt, params)
+        return dp_inputs(vp, P_d, v, grade, lam, dt, params)
 
     tb = jax.vmap(one)(vb, P_db, v_b, g_b, lam_b)
     last = lambda a: jnp.moveaxis(a, 0, -1)  # noqa: E731
