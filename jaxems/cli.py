@@ -7,7 +7,8 @@
                     [--strategy NAME] [--dt S] [--n-iter N] [--option NAME=VALUE ...]
                     [--json] [--csv FILE] [--plot FILE]  one strategy on the closed-loop plant
     jaxems compare ROUTE [--vehicle ...] [--mass KG] [--battery-MJ X] [--strategies A,B,...]
-                   [--option NAME=VALUE ...] [--json]    fuel and savings of several strategies
+                   [--option NAME=VALUE ...] [--json] [--traces DIR]
+                                                         fuel and savings of several strategies
 
 ROUTE is a `.vdri` or `.csv` file or the name of a bundled route (``short_track``,
 ``LongHaul``, ...). A bad file or value prints one line on stderr and exits with status 1.
@@ -91,21 +92,44 @@ def _load(args):
     return route_name(path), path, load_route(path, ds=args.ds)
 
 
-def check_output(path: str | None, flag: str) -> Path | None:
-    """An output file named on the command line, checked before anything runs: its directory
-    exists and is writable and the path is not a directory (else CLIError naming the flag), so
-    that a long run does not end without its file."""
+def check_output(path: str | None, flag: str, directory: bool = False) -> Path | None:
+    """An output named on the command line, checked before anything runs, so that a long run
+    does not end without it (else CLIError naming the flag): a file's directory exists and is
+    writable and the file is no directory; with ``directory``, the path is a writable
+    directory, made where it is missing and its parent exists."""
     if path is None:
         return None
     p = Path(path)
-    parent = p.parent if str(p.parent) else Path(".")
-    if p.is_dir():
-        raise CLIError(f"{flag}: {path} is a directory")
-    if not parent.is_dir():
-        raise CLIError(f"{flag}: the directory {parent} does not exist")
+    if directory:
+        if p.exists() and not p.is_dir():
+            raise CLIError(f"{flag}: {path} is not a directory")
+        if not p.parent.is_dir():
+            raise CLIError(f"{flag}: the directory {p.parent} does not exist")
+        try:
+            p.mkdir(exist_ok=True)
+        except OSError as e:
+            raise CLIError(f"{flag}: cannot make {path} ({e.strerror})") from None
+        parent = p
+    else:
+        if p.is_dir():
+            raise CLIError(f"{flag}: {path} is a directory")
+        parent = p.parent
+        if not parent.is_dir():
+            raise CLIError(f"{flag}: the directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CLIError(f"{flag}: the directory {parent} is not writable")
     return p
+
+
+def write_run_files(res, vp, csv: Path | None, plot: Path | None) -> None:
+    """A simulated run's time series (`Result.trace_columns`, CSV) and traces (PNG,
+    `report.plot_run`), where a path is given."""
+    if csv is not None:
+        write_csv(csv, res.trace_columns())
+    if plot is not None:
+        from .report import plot_run
+
+        plot_run(res, vp, res.strategy, plot)
 
 
 def write_csv(path: Path, columns: dict) -> None:
@@ -345,12 +369,7 @@ def cmd_simulate(args) -> int:
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
     # the last plan's Level 2 flags by name (None: a strategy without the iteration's Level 2)
     level2 = out["level2_status"] = level2_names(out["level2_status"])
-    if csv is not None:
-        write_csv(csv, res.trace_columns())
-    if plot is not None:
-        from .report import plot_run
-
-        plot_run(res, vp, args.strategy, plot)
+    write_run_files(res, vp, csv, plot)
     if args.json:
         print(json.dumps(_json_safe(out)))
         return 0
@@ -425,6 +444,9 @@ def cmd_compare(args) -> int:
     from .sweep import compare_strategies, option_pairs
 
     strategies = comma_list(args.strategies)
+    traces = None
+    if args.traces is not None:  # its parent checked, and the directory made, before any run
+        traces = check_output(args.traces, "--traces", directory=True)
     _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
@@ -434,8 +456,13 @@ def cmd_compare(args) -> int:
         if not args.json:
             print(f"  {row['strategy']:<15} {row['wall_s']:6.1f} s", file=sys.stderr, flush=True)
 
+    def files(res):  # each run's time series and traces, as simulate --csv / --plot write them
+        if traces is not None:
+            write_run_files(res, vp, traces / f"{res.strategy}.csv",
+                            traces / f"{res.strategy}.png")
+
     rows = compare_strategies(str(path), vp, strategies, dt=args.dt, progress=progress,
-                              **options)
+                              on_result=files, **options)
     out = {"route": rows[0]["route"], "file": str(path), "vehicle": str(args.vehicle),
            "mass_kg": float(vp.mass), "battery_MJ": float(vp.E_b_max) / 1e6,
            "initial_soc": float(vp.soc0), "dt_s": float(args.dt), "options": options,
@@ -462,6 +489,8 @@ def cmd_compare(args) -> int:
     if any(r["charge_missed"] for r in rows):
         print("* the battery ends more than 1 % of its size from where it started: "
               "not charge sustaining")
+    if traces is not None:
+        print(f"traces   {traces}/STRATEGY.csv and .png")
     return 0
 
 
@@ -475,6 +504,9 @@ def register_compare(sub) -> None:
     p.add_argument("--strategies", default="conventional,baseline,multilevel", metavar="A,B,...",
                    help="comma-separated strategies (default conventional,baseline,multilevel; "
                         "also multilevel-mpc, dp-bound, multilevel-eco)")
+    p.add_argument("--traces", metavar="DIR",
+                   help="write each strategy's time series and traces to DIR/STRATEGY.csv and "
+                        ".png (as simulate --csv and --plot); DIR is made if missing")
     p.set_defaults(func=cmd_compare)
 
 

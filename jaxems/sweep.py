@@ -861,13 +861,14 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
                        dt: float = 1.0, mass_kg: float | None = None,
                        battery_MJ: float | None = None, initial_soc: float | None = None,
                        name: str | None = None, progress: Callable | None = None,
-                       **options) -> list[dict]:
+                       on_result: Callable | None = None, **options) -> list[dict]:
     """Several strategies on one route with one vehicle, as a sweep compares them.
 
     route: a `Route`, a path or a bundled name; vehicle: `VehicleParams` or a name or path;
     mass_kg, battery_MJ, initial_soc: overrides; options: fields of `strategies.Options`, for
     every strategy. Everything is checked before anything compiles (an unknown or repeated
-    strategy, a bad option or value: ValueError naming it). progress(row) is called after each
+    strategy, a bad option or value: ValueError naming it). on_result(result) (the run's
+    `strategies.Result`, its traces included) and then progress(row) are called after each
     run.
 
     Returns one dict per strategy, in the order given: `Result.as_dict()` plus the sweep's
@@ -894,7 +895,10 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     name, route = named_route(route, name)  # loaded and checked once
     rows = []
     for s in strategies:
-        row = simulate(route, vp, s, dt=dt, options=opts, name=name).as_dict()
+        res = simulate(route, vp, s, dt=dt, options=opts, name=name)
+        if on_result is not None:
+            on_result(res)
+        row = res.as_dict()
         rows.append(row)
         if progress is not None:
             progress(row)

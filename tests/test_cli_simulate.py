@@ -363,6 +363,33 @@ def test_compare_cli_json_and_table(capsys):
     assert cells[1] == f"{row['fuel_J'] / 1e6:.3f}" and "-" in cells and cells[-1] == "ok"
 
 
+def test_compare_writes_each_runs_traces(capsys, tmp_path, monkeypatch):
+    """`compare --traces DIR` makes DIR and writes each strategy's time series and traces there,
+    as `simulate --csv / --plot` write them; a DIR that cannot be made is one line before any
+    run."""
+    import csv
+
+    out_dir = tmp_path / "traces"
+    code, out, err = run(capsys, "compare", "short_track", "--strategies", "conventional",
+                         "--mass", "25000", "--json", "--traces", str(out_dir))
+    assert code == 0, err
+    (row,) = json.loads(out)["rows"]
+    assert sorted(p.name for p in out_dir.iterdir()) == ["conventional.csv", "conventional.png"]
+    with open(out_dir / "conventional.csv", newline="") as fh:
+        rows = list(csv.reader(fh))
+    assert rows[0] == TRACE_HEADER
+    t = [float(r[0]) for r in rows[1:]]
+    assert t[0] == 0.0 and t[-1] < row["trip_time_s"] <= t[-1] + 1.0  # the run's whole trip
+    assert (out_dir / "conventional.png").read_bytes()[:4] == b"\x89PNG"
+    from jaxems import strategies
+
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
+    for target, words in [(tmp_path / "no" / "dir", "--traces: the directory"),
+                          (out_dir / "conventional.csv", "is not a directory")]:
+        code, out, err = run(capsys, "compare", "short_track", "--traces", str(target))
+        assert code == 1 and out == "" and err.count("\n") == 1 and words in err
+
+
 def test_compare_cli_errors(capsys):
     code, _, err = run(capsys, "compare", "short_track", "--strategies", "conventional,greedy")
     assert code == 1 and "unknown 'greedy'" in err
