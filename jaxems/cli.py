@@ -385,6 +385,9 @@ def cmd_simulate(args) -> int:
             unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
             if out["charge_missed"]:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
+        if key == "trip_time_s":  # against the Level 3 prediction the run followed
+            t3 = out["level3_trip_time_s"]
+            unit += f" (Level 3: {t3:.1f} s, {100 * (v / t3 - 1):+.2f} %)" if t3 > 0 else ""
         rows.append((label, f"{text} {unit}".rstrip()))
     if level2 is not None:
         hint = " (more pieces: --option l2_pieces=N)" if "pieces-exhausted" in level2 else ""

@@ -176,13 +176,16 @@ class Options(NamedTuple):
 
 
 class Metrics(NamedTuple):
-    """What a run reports; scalars (one route, one vehicle). level2_status: the flags of the
-    last plan's Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its
+    """What a run reports; scalars (one route, one vehicle). level3_trip_time_s: Level 3's
+    trip time on the prediction the run followed (the iteration's and dp-bound's last,
+    re-predicted with their engine speeds; the eco profile's), against which the issue's
+    1 % check reads trip_time_s. level2_status: the flags of the last plan's Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its
     `l2_pieces` ran out with the battery's limits still violated) for the strategies that
     iterate (multilevel, multilevel-eco); NO_LEVEL2 for the others."""
 
     length_m: Any
     trip_time_s: Any
+    level3_trip_time_s: Any  # Level 3's trip time on the prediction the run followed last
     fuel_J: Any
     delta_Eb_J: Any
     Eb_min_J: Any
@@ -251,7 +254,8 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status,
     status = status | jnp.where(pred.feasible, OK, INFEASIBLE_ROUTE)
     status = status | jnp.where(res.final.done, OK, UNFINISHED)
     return Metrics(
-        length_m=pred.length, trip_time_s=t.trip_time, fuel_J=t.fuel,
+        length_m=pred.length, trip_time_s=t.trip_time,
+        level3_trip_time_s=jnp.asarray(pred.trip_time, E.dtype), fuel_J=t.fuel,
         delta_Eb_J=res.final.E_b - res.E_b0,
         Eb_min_J=jnp.minimum(jnp.min(E), res.final.E_b),
         Eb_max_J=jnp.maximum(jnp.max(E), res.final.E_b),

@@ -77,9 +77,9 @@ RESULTS_FILE = "results.parquet"
 
 # Fields of `jaxems simulate --json` that `simulate_batch` returns (float unless noted).
 RESULT_FIELDS = (
-    "length_m", "trip_time_s", "fuel_J", "fuel_l_per_100km", "delta_Eb_J", "Eb_min_J",
-    "Eb_max_J", "mode_switches", "gear_switches", "lambda_b", "max_speed_shortfall_mps",
-    "level2_status",
+    "length_m", "trip_time_s", "level3_trip_time_s", "fuel_J", "fuel_l_per_100km",
+    "delta_Eb_J", "Eb_min_J", "Eb_max_J", "mode_switches", "gear_switches", "lambda_b",
+    "max_speed_shortfall_mps", "level2_status",
 )
 # level2_status: the last plan's Level 2 flags as an integer (`strategies.level2_names`;
 # `strategies.NO_LEVEL2`: the strategy has none, and a chunk that failed)
@@ -957,7 +957,8 @@ def load_sweep(directory: str | Path):
     strategy).
 
     Columns: route, strategy, grid_index, the grid values (user units; mass_kg and battery_MJ
-    always), the fields of ``jaxems simulate --json`` (length_m, trip_time_s, fuel_J,
+    always), the fields of ``jaxems simulate --json`` (length_m, trip_time_s,
+    level3_trip_time_s, fuel_J,
     fuel_l_per_100km, delta_Eb_J, Eb_min_J, Eb_max_J, mode_switches, gear_switches, lambda_b,
     max_speed_shortfall_mps, status), level2_status (the last plan's Level 2 flags as an
     integer, `strategies.level2_names`; -1 where the strategy has none), wall_s (wall time per

@@ -16,7 +16,8 @@ from jaxems.cli import build_parser, main
 ROOT = Path(__file__).resolve().parent.parent
 
 FIELDS = {
-    "route": str, "strategy": str, "length_m": float, "trip_time_s": float, "fuel_J": float,
+    "route": str, "strategy": str, "length_m": float, "trip_time_s": float,
+    "level3_trip_time_s": float, "fuel_J": float,
     "fuel_l_per_100km": float, "delta_Eb_J": float, "Eb_min_J": float, "Eb_max_J": float,
     "mode_switches": int, "gear_switches": int, "lambda_b": float,
     "max_speed_shortfall_mps": float, "wall_s": float,
@@ -43,6 +44,7 @@ def test_simulate_conventional_json(capsys):
     assert d["mass_kg"] == 25000.0 and d["status"] == "ok"
     # the trip at 25 km/h takes 152 s; switches open the driveline and cost a little time
     assert 1055 / (25 / 3.6) <= d["trip_time_s"] <= 1.1 * 1055 / (25 / 3.6) + 1
+    assert 1055 / (25 / 3.6) <= d["level3_trip_time_s"] <= d["trip_time_s"]  # Level 3's
     # the conventional truck has no motor: the battery stays where it started (half of 4 MJ)
     assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"] == 2.0e6
     # the 12 % climbs need lower gears than the flat: the truck shifts
@@ -188,8 +190,8 @@ class _FakeRun:
     def __init__(self, delta_Eb_J, status="ok", level2=-1, strategy="baseline", fuel_J=7e6,
                  lambda_b=-2.0):
         self.strategy = strategy
-        self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "fuel_J": fuel_J,
-                       "fuel_l_per_100km": 18.6, "fuel_corrected_J": fuel_J,
+        self.fields = {"length_m": 1055.0, "trip_time_s": 153.0, "level3_trip_time_s": 151.9,
+                       "fuel_J": fuel_J, "fuel_l_per_100km": 18.6, "fuel_corrected_J": fuel_J,
                        "delta_Eb_J": delta_Eb_J, "Eb_min_J": 1e6, "Eb_max_J": 3e6,
                        "mode_switches": 4, "gear_switches": 7, "lambda_b": lambda_b,
                        "max_speed_shortfall_mps": 0.5, "status": status,

@@ -85,6 +85,7 @@ def test_energy_balance_closes_for_every_strategy(runs):
 def test_trip_time_within_one_percent_of_level3(runs):
     for name, r in runs.items():
         t3 = float(r.prediction.trip_time)
+        assert r["level3_trip_time_s"] == t3, name  # reported with the run (JSON, sweeps)
         assert abs(r["trip_time_s"] - t3) <= 0.01 * t3 + 1.0, name  # +1: whole plant steps
 
 
