@@ -36,6 +36,7 @@ SUFFICIENT_PP = 0.5  # percentage points: "sufficient" battery = within this of 
 MAX_FULL_TABLE = 2000  # rows: the full results table goes into the page up to this size
 MAX_MISSED = 50  # rows: the largest charge misses listed in the page
 CHARGE_SHARE = 0.01  # a run misses the charge beyond this share of its battery (|delta_Eb|)
+TRIP_SHARE = 0.01  # a trip is long beyond this share over Level 3's (level3_trip_time_s)
 
 
 def _plt():
@@ -346,6 +347,17 @@ def charge_missed(df, share: float = CHARGE_SHARE):
                          df["battery_MJ"].to_numpy(float) * 1e6, share))
 
 
+def trip_long(df, share: float = TRIP_SHARE):
+    """(len(df),) bool: finished runs whose trip takes more than share longer than Level 3's
+    prediction it followed (`level3_trip_time_s`; False where the column is absent, as in
+    sweeps written before it)."""
+    if "level3_trip_time_s" not in df:
+        return np.zeros(len(df), bool)
+    t3 = df["level3_trip_time_s"].to_numpy(float)
+    return ((df["status"] == "ok").to_numpy() & (t3 > 0)
+            & (df["trip_time_s"].to_numpy(float) > (1.0 + share) * t3))
+
+
 def level2_exhausted(df):
     """(len(df),) bool: finished runs whose last plan's Level 2 ran out of pieces with the
     battery's limits still violated (`level2_status`; False where the column is absent)."""
@@ -359,12 +371,13 @@ def level2_exhausted(df):
 
 def summary_table(df, ref: str | None):
     """Per route and strategy: rows, ok rows, rows that miss the charge (`charge_missed`),
-    rows whose Level 2 ran out of pieces (`level2_exhausted`), mean fuel and mean/min/max
-    saving."""
+    rows whose trip is long against Level 3's (`trip_long`), rows whose Level 2 ran out of
+    pieces (`level2_exhausted`), mean fuel and mean/min/max saving."""
     import pandas as pd
 
     rows = []
     missed = charge_missed(df)
+    long = trip_long(df)
     exhausted = level2_exhausted(df)
     for r in _routes(df):
         for s in _strategies(df):
@@ -373,6 +386,7 @@ def summary_table(df, ref: str | None):
             ok = d[d["status"] == "ok"]
             row = {"route": r, "strategy": s, "rows": len(d), "ok": len(ok),
                    "charge_missed": int(np.sum(missed & sel)),
+                   "trip_long": int(np.sum(long & sel)),
                    "level2_exhausted": int(np.sum(exhausted & sel)),
                    "fuel_corrected_MJ_mean": ok["fuel_corrected_J"].mean() / 1e6 if len(ok)
                    else np.nan,
@@ -476,6 +490,17 @@ def write_report(directory: str | Path, df=None) -> Path:
             f"configurations that end more than {100 * CHARGE_SHARE:g} % of their battery from "
             f"where they started ({len(missed)}; the {min(len(missed), MAX_MISSED)} largest): "
             "their corrected fuel prices the difference at lambda_b"))
+    slow = df[trip_long(df)]
+    if len(slow):
+        slow = slow.assign(trip_vs_level3_pct=100 * (slow["trip_time_s"]
+                                                     / slow["level3_trip_time_s"] - 1))
+        slow = slow.sort_values("trip_vs_level3_pct", ascending=False)
+        parts.append(_table(
+            slow[["route", "strategy", *grid_cols, "trip_time_s", "level3_trip_time_s",
+                  "trip_vs_level3_pct"]].head(MAX_MISSED),
+            f"configurations whose trip takes more than {100 * TRIP_SHARE:g} % longer than the "
+            f"Level 3 prediction they followed ({len(slow)}; the {min(len(slow), MAX_MISSED)} "
+            "longest; the plant counts whole steps)"))
     cols = ["route", "strategy", *grid_cols, "fuel_J", "fuel_corrected_J", "fuel_l_per_100km",
             "delta_Eb_J", "lambda_b", "mode_switches", "gear_switches", "trip_time_s",
             "saving_vs_conventional_pct", "saving_vs_baseline_pct", "status"]

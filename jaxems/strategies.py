@@ -178,10 +178,11 @@ class Options(NamedTuple):
 class Metrics(NamedTuple):
     """What a run reports; scalars (one route, one vehicle). level3_trip_time_s: Level 3's
     trip time on the prediction the run followed (the iteration's and dp-bound's last,
-    re-predicted with their engine speeds; the eco profile's), against which the issue's
-    1 % check reads trip_time_s. level2_status: the flags of the last plan's Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its
-    `l2_pieces` ran out with the battery's limits still violated) for the strategies that
-    iterate (multilevel, multilevel-eco); NO_LEVEL2 for the others."""
+    re-predicted with their engine speeds; the eco profile's), against which the trip-time
+    check reads trip_time_s (`report.trip_long`). level2_status: the flags of the last plan's
+    Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its `l2_pieces`
+    ran out with the battery's limits still violated) for the strategies that iterate
+    (multilevel, multilevel-eco); NO_LEVEL2 for the others."""
 
     length_m: Any
     trip_time_s: Any

@@ -34,7 +34,8 @@ def synthetic(seed=0, drop=()):
                 fuel = conv * (k - (0 if s == "conventional" else 0.01 * np.log(b)))
                 rows.append({
                     "route": route, "strategy": s, "grid_index": g, "mass_kg": m,
-                    "battery_MJ": b, "length_m": 1e4 * (1 + r), "trip_time_s": 600.0,
+                    "battery_MJ": b, "length_m": 1e4 * (1 + r),
+                    "trip_time_s": 600.0 + float(rng.integers(0, 16)), "level3_trip_time_s": 597.0,
                     "fuel_J": fuel, "fuel_l_per_100km": fuel / 42.8e6 / 0.832 / (0.1 * (1 + r)),
                     "delta_Eb_J": 0.0 if s == "conventional" else rng.uniform(-1e5, 1e5),
                     "Eb_min_J": 0.0, "Eb_max_J": b * 1e6, "mode_switches": 3,
@@ -188,6 +189,28 @@ def test_charge_misses_are_counted_and_listed(tmp_path):
                         r"the (\d+) largest\)", text)
     assert caption and int(caption.group(1)) == n
     assert int(caption.group(2)) == min(n, rp.MAX_MISSED)
+
+
+def test_long_trips_are_counted_and_listed(tmp_path):
+    """Finished runs whose trip takes more than 1 % longer than their Level 3 prediction:
+    counted per route and strategy (a loop over the rows), the longest listed in the page; a
+    table without Level 3's trip time (a sweep written before it) counts none."""
+    df = synthetic(5)
+    want = {}
+    for row in df.itertuples():
+        slow = row.status == "ok" and row.trip_time_s > 1.01 * row.level3_trip_time_s
+        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + slow
+    got = rp.summary_table(df, "conventional")
+    assert {(r.route, r.strategy): r.trip_long for r in got.itertuples()} == want
+    n = sum(want.values())
+    assert 0 < n < len(df)
+    text = rp.write_report(write_dir(tmp_path, df)).read_text(encoding="utf-8")
+    caption = re.search(r"trip takes more than 1 % longer than the Level 3 prediction they "
+                        r"followed \((\d+); the (\d+) longest", text)
+    assert caption and int(caption.group(1)) == n
+    assert int(caption.group(2)) == min(n, rp.MAX_MISSED)
+    old = rp.summary_table(df.drop(columns=["level3_trip_time_s"]), "conventional")
+    assert (old["trip_long"] == 0).all()
 
 
 def test_report_of_an_unfinished_sweep_and_without_references(tmp_path):
