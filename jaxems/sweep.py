@@ -65,7 +65,7 @@ from .params import (
     check_vehicle,
     load_vehicle,
 )
-from .report import CHARGE_SHARE, charge_missed, write_report
+from .report import CHARGE_SHARE, TRIP_SHARE, charge_missed, trip_long, write_report
 from .route import Route, RouteError
 
 FORMAT_VERSION = 1
@@ -995,6 +995,7 @@ class SweepSummary:
     wall_s: float
     status_counts: dict[str, int]
     charge_missed: int  # finished runs more than 1 % of their battery off (`report.charge_missed`)
+    trip_long: int  # finished runs more than 1 % longer than Level 3's trip (`report.trip_long`)
     chunk_stats: list[dict]  # per computed chunk: id, strategy, route, compiles, wall_s
     results: Path | None
     report: Path | None
@@ -1011,7 +1012,8 @@ class SweepSummary:
             f"in {self.wall_s:.1f} s ({rate:.2f} configurations/s); "
             f"{self.skipped_chunks} chunks already done",
             f"  status: {st or 'no rows'}; {self.charge_missed} end more than "
-            f"{100 * CHARGE_SHARE:g} % of their battery from their start"
+            f"{100 * CHARGE_SHARE:g} % of their battery from their start, {self.trip_long} "
+            f"take more than {100 * TRIP_SHARE:g} % longer than Level 3's trip"
             + (" (listed in the report)" if self.report else ""),
         ]
         if self.results:
@@ -1180,7 +1182,8 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
         out=out, n_configs=n_configs, n_chunks=len(chunks), computed_chunks=len(todo),
         skipped_chunks=skipped, computed_configs=sum(c.n_real for c in todo), wall_s=wall,
         status_counts={str(k): int(v) for k, v in counts.items()},
-        charge_missed=int(charge_missed(df).sum()), chunk_stats=stats,
+        charge_missed=int(charge_missed(df).sum()), trip_long=int(trip_long(df).sum()),
+        chunk_stats=stats,
         results=res_path, report=report_path, backend=backend,
     )
 

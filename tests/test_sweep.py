@@ -99,10 +99,13 @@ def test_infeasible_route_is_recorded_and_the_sweep_goes_on(sweep_a):
     assert (steep.loc[20000.0] == "ok").all()
     assert (df[df.route == "short_track"]["status"] == "ok").all()
     assert summary.status_counts.get("ok", 0) >= 8
-    from jaxems.report import charge_missed
+    from jaxems.report import charge_missed, trip_long
 
     assert summary.charge_missed == int(charge_missed(df).sum())
     assert f"{summary.charge_missed} end more than 1 % of their battery" in summary.text()
+    assert summary.trip_long == int(trip_long(df).sum())
+    assert f"{summary.trip_long} take more than 1 % longer than Level 3's" in summary.text()
+    assert (df["level3_trip_time_s"] > 0).all()  # the column is in the results
 
 
 def test_one_compilation_per_strategy_and_bucket_not_per_chunk(sweep_a):
