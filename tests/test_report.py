@@ -171,24 +171,33 @@ def test_level2_running_out_of_pieces_is_counted():
     assert (old["level2_exhausted"] == 0).all()
 
 
-def test_charge_misses_are_counted_and_listed(tmp_path):
-    """Finished runs that end more than 1 % of their battery from their start: counted per
-    route and strategy (a loop over the rows), the largest listed in the page."""
-    df = synthetic(3)
+def check_counted_and_listed(tmp_path, df, flagged, column, caption):
+    """The rows `flagged(row)` (a loop over them) are the summary table's `column` per route and
+    strategy, and the report's list of them says how many (caption: a regex whose groups are
+    the count and how many are listed). Returns the count per (route, strategy)."""
     want = {}
     for row in df.itertuples():
-        off = row.status == "ok" and abs(row.delta_Eb_J) > 0.01 * row.battery_MJ * 1e6
-        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + off
+        hit = row.status == "ok" and flagged(row)
+        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + hit
     got = rp.summary_table(df, "conventional")
-    assert {(r.route, r.strategy): r.charge_missed for r in got.itertuples()} == want
-    assert all(want[(r, "conventional")] == 0 for r in ROUTES)
+    assert {(r.route, r.strategy): getattr(r, column) for r in got.itertuples()} == want
     n = sum(want.values())
     assert 0 < n < len(df)
     text = rp.write_report(write_dir(tmp_path, df)).read_text(encoding="utf-8")
-    caption = re.search(r"end more than 1 % of their battery from where they started \((\d+); "
-                        r"the (\d+) largest\)", text)
-    assert caption and int(caption.group(1)) == n
-    assert int(caption.group(2)) == min(n, rp.MAX_MISSED)
+    found = re.search(caption, text)
+    assert found and int(found.group(1)) == n
+    assert int(found.group(2)) == min(n, rp.MAX_MISSED)
+    return want
+
+
+def test_charge_misses_are_counted_and_listed(tmp_path):
+    """Finished runs that end more than 1 % of their battery from their start: counted per
+    route and strategy (a loop over the rows), the largest listed in the page."""
+    want = check_counted_and_listed(
+        tmp_path, synthetic(3), lambda row: abs(row.delta_Eb_J) > 0.01 * row.battery_MJ * 1e6,
+        "charge_missed",
+        r"end more than 1 % of their battery from where they started \((\d+); the (\d+) largest\)")
+    assert all(want[(r, "conventional")] == 0 for r in ROUTES)
 
 
 def test_long_trips_are_counted_and_listed(tmp_path):
@@ -196,19 +205,10 @@ def test_long_trips_are_counted_and_listed(tmp_path):
     counted per route and strategy (a loop over the rows), the longest listed in the page; a
     table without Level 3's trip time (a sweep written before it) counts none."""
     df = synthetic(5)
-    want = {}
-    for row in df.itertuples():
-        slow = row.status == "ok" and row.trip_time_s > 1.01 * row.level3_trip_time_s
-        want[(row.route, row.strategy)] = want.get((row.route, row.strategy), 0) + slow
-    got = rp.summary_table(df, "conventional")
-    assert {(r.route, r.strategy): r.trip_long for r in got.itertuples()} == want
-    n = sum(want.values())
-    assert 0 < n < len(df)
-    text = rp.write_report(write_dir(tmp_path, df)).read_text(encoding="utf-8")
-    caption = re.search(r"trip takes more than 1 % longer than the Level 3 prediction they "
-                        r"followed \((\d+); the (\d+) longest", text)
-    assert caption and int(caption.group(1)) == n
-    assert int(caption.group(2)) == min(n, rp.MAX_MISSED)
+    check_counted_and_listed(
+        tmp_path, df, lambda row: row.trip_time_s > 1.01 * row.level3_trip_time_s, "trip_long",
+        r"trip takes more than 1 % longer than the Level 3 prediction they followed "
+        r"\((\d+); the (\d+) longest")
     old = rp.summary_table(df.drop(columns=["level3_trip_time_s"]), "conventional")
     assert (old["trip_long"] == 0).all()
 
