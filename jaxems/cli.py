@@ -96,7 +96,7 @@ def check_output(path: str | None, flag: str, directory: bool = False) -> Path |
     """An output named on the command line, checked before anything runs, so that a long run
     does not end without it (else CLIError naming the flag): a file's directory exists and is
     writable and the file is no directory; with ``directory``, the path is a writable
-    directory, made where it is missing and its parent exists."""
+    directory, or none yet in a writable one (the caller makes it when it writes)."""
     if path is None:
         return None
     p = Path(path)
@@ -105,11 +105,7 @@ def check_output(path: str | None, flag: str, directory: bool = False) -> Path |
             raise CLIError(f"{flag}: {path} is not a directory")
         if not p.parent.is_dir():
             raise CLIError(f"{flag}: the directory {p.parent} does not exist")
-        try:
-            p.mkdir(exist_ok=True)
-        except OSError as e:
-            raise CLIError(f"{flag}: cannot make {path} ({e.strerror})") from None
-        parent = p
+        parent = p if p.is_dir() else p.parent
     else:
         if p.is_dir():
             raise CLIError(f"{flag}: {path} is a directory")
@@ -447,9 +443,7 @@ def cmd_compare(args) -> int:
     from .sweep import compare_strategies, option_pairs
 
     strategies = comma_list(args.strategies)
-    traces = None
-    if args.traces is not None:  # its parent checked, and the directory made, before any run
-        traces = check_output(args.traces, "--traces", directory=True)
+    traces = check_output(args.traces, "--traces", directory=True)  # before any run
     _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
@@ -461,6 +455,7 @@ def cmd_compare(args) -> int:
 
     def files(res):  # each run's time series and traces, as simulate --csv / --plot write them
         if traces is not None:
+            traces.mkdir(exist_ok=True)  # once the runs have started: their input is good
             write_run_files(res, vp, traces / f"{res.strategy}.csv",
                             traces / f"{res.strategy}.png")
 

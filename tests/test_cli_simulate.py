@@ -386,10 +386,12 @@ def test_compare_writes_each_runs_traces(capsys, tmp_path, monkeypatch):
     from jaxems import strategies
 
     monkeypatch.setattr(strategies, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
-    for target, words in [(tmp_path / "no" / "dir", "--traces: the directory"),
-                          (out_dir / "conventional.csv", "is not a directory")]:
-        code, out, err = run(capsys, "compare", "short_track", "--traces", str(target))
+    for target, words, more in [(tmp_path / "no" / "dir", "--traces: the directory", []),
+                                (out_dir / "conventional.csv", "is not a directory", []),
+                                (tmp_path / "new", "unknown 'bogus'", ["--strategies", "bogus"])]:
+        code, out, err = run(capsys, "compare", "short_track", "--traces", str(target), *more)
         assert code == 1 and out == "" and err.count("\n") == 1 and words in err
+    assert not (tmp_path / "new").exists()  # made only once the runs start
 
 
 def test_compare_cli_errors(capsys):
