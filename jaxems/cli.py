@@ -100,18 +100,11 @@ def check_output(path: str | None, flag: str, directory: bool = False) -> Path |
     if path is None:
         return None
     p = Path(path)
-    if directory:
-        if p.exists() and not p.is_dir():
-            raise CLIError(f"{flag}: {path} is not a directory")
-        if not p.parent.is_dir():
-            raise CLIError(f"{flag}: the directory {p.parent} does not exist")
-        parent = p if p.is_dir() else p.parent
-    else:
-        if p.is_dir():
-            raise CLIError(f"{flag}: {path} is a directory")
-        parent = p.parent
-        if not parent.is_dir():
-            raise CLIError(f"{flag}: the directory {parent} does not exist")
+    if p.exists() and p.is_dir() != directory:
+        raise CLIError(f"{flag}: {path} is {'not ' if directory else ''}a directory")
+    parent = p if p.is_dir() else p.parent
+    if not parent.is_dir():
+        raise CLIError(f"{flag}: the directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CLIError(f"{flag}: the directory {parent} is not writable")
     return p

@@ -407,7 +407,7 @@ def write_report(directory: str | Path, df=None) -> Path:
     df: the results (default `jaxems.sweep.load_sweep(directory)`); an unfinished sweep gives a
     report of the rows so far.
     """
-    from .sweep import load_sweep, read_record
+    from .sweep import atomic_write_bytes, load_sweep, read_record
 
     out = Path(directory)
     if df is None:
@@ -482,25 +482,22 @@ def write_report(directory: str | Path, df=None) -> Path:
         parts.append(_table(bad[["route", "strategy", *grid_cols, "status"]],
                             "configurations that did not finish"))
     missed = df[charge_missed(df)]
-    if len(missed):
-        off = missed.assign(delta_Eb_pct=100 * missed["delta_Eb_J"] / (1e6 * missed["battery_MJ"]))
-        off = off.reindex(off["delta_Eb_pct"].abs().sort_values(ascending=False).index)
-        parts.append(_table(
-            off[["route", "strategy", *grid_cols, "delta_Eb_pct", "lambda_b"]].head(MAX_MISSED),
-            f"configurations that end more than {100 * CHARGE_SHARE:g} % of their battery from "
-            f"where they started ({len(missed)}; the {min(len(missed), MAX_MISSED)} largest): "
-            "their corrected fuel prices the difference at lambda_b"))
+    parts += _largest(
+        missed.assign(delta_Eb_pct=100 * missed["delta_Eb_J"] / (1e6 * missed["battery_MJ"])),
+        "delta_Eb_pct", ["route", "strategy", *grid_cols, "delta_Eb_pct", "lambda_b"],
+        lambda n, k: f"configurations that end more than {100 * CHARGE_SHARE:g} % of their "
+                     f"battery from where they started ({n}; the {k} largest): their corrected "
+                     "fuel prices the difference at lambda_b")
     slow = df[trip_long(df)]
-    if len(slow):
-        slow = slow.assign(trip_vs_level3_pct=100 * (slow["trip_time_s"]
-                                                     / slow["level3_trip_time_s"] - 1))
-        slow = slow.sort_values("trip_vs_level3_pct", ascending=False)
-        parts.append(_table(
-            slow[["route", "strategy", *grid_cols, "trip_time_s", "level3_trip_time_s",
-                  "trip_vs_level3_pct"]].head(MAX_MISSED),
-            f"configurations whose trip takes more than {100 * TRIP_SHARE:g} % longer than the "
-            f"Level 3 prediction they followed ({len(slow)}; the {min(len(slow), MAX_MISSED)} "
-            "longest; the plant counts whole steps)"))
+    parts += _largest(
+        slow.assign(trip_vs_level3_pct=100 * (slow["trip_time_s"] / slow["level3_trip_time_s"]
+                                              - 1)),
+        "trip_vs_level3_pct",
+        ["route", "strategy", *grid_cols, "trip_time_s", "level3_trip_time_s",
+         "trip_vs_level3_pct"],
+        lambda n, k: f"configurations whose trip takes more than {100 * TRIP_SHARE:g} % longer "
+                     f"than the Level 3 prediction they followed ({n}; the {k} longest; the "
+                     "plant counts whole steps)")
     cols = ["route", "strategy", *grid_cols, "fuel_J", "fuel_corrected_J", "fuel_l_per_100km",
             "delta_Eb_J", "lambda_b", "mode_switches", "gear_switches", "trip_time_s",
             "saving_vs_conventional_pct", "saving_vs_baseline_pct", "status"]
@@ -511,10 +508,18 @@ def write_report(directory: str | Path, df=None) -> Path:
                      f"(<code>jaxems.load_sweep(DIR)</code>).</p>")
     parts.append("</body></html>")
     page = out / "report.html"
-    tmp = out / ".report.html.tmp"
-    tmp.write_text("\n".join(parts), encoding="utf-8")
-    tmp.replace(page)
+    atomic_write_bytes(page, "\n".join(parts).encode("utf-8"))
     return page
+
+
+def _largest(flagged, key: str, cols: list[str], caption) -> list[str]:
+    """The page's list of flagged rows (none: no list): the MAX_MISSED of largest |key|, with
+    caption(n flagged, k listed)."""
+    if not len(flagged):
+        return []
+    top = flagged.reindex(flagged[key].abs().sort_values(ascending=False).index)
+    k = min(len(flagged), MAX_MISSED)
+    return [_table(top[cols].head(k), caption(len(flagged), k))]
 
 
 # -------------------------------------------------------------------------------------- CLI
@@ -563,22 +568,20 @@ def plot_run(res, vp, title: str, path: Path, lvl2: dict | None = None) -> None:
     from .levels.powersplit import MODE_SHORT
 
     plt = _plt()
-    tr = res.trace
+    tr = res.trip_trace()
     d = res.as_dict()
-    live = np.asarray(tr.t) < d["trip_time_s"]
-    g = lambda x: np.asarray(x)[live]  # noqa: E731
-    s = g(tr.s)
+    s = tr.s
     pred = res.prediction
     pm = np.asarray(pred.mask)
     fig, ax = plt.subplots(5, 1, figsize=(8, 10), sharex=True)
     ax[0].plot(np.asarray(pred.s)[pm], np.asarray(pred.P_d)[pm] / 1e3, "k:", lw=1.2,
                label="P_d (Level 3)")
-    ax[0].plot(s, g(tr.P_m) / 1e3, "C0-", drawstyle="steps-post", label="P_m")
-    ax[1].plot(s, g(tr.mode), "C1-", drawstyle="steps-post", label="mode")
-    ax[2].plot(s, g(tr.gear) + 1, "C2-", drawstyle="steps-post", label="gear")
-    ax[3].plot(s, g(tr.E_b) / 1e6, "C3-", label="E_b")
-    ax[4].plot(s, g(tr.v) * 3.6, "C4-", label="v")
-    ax[4].plot(s, g(tr.v_ref) * 3.6, "k--", lw=0.8, label="v_ref (Level 3)")
+    ax[0].plot(s, tr.P_m / 1e3, "C0-", drawstyle="steps-post", label="P_m")
+    ax[1].plot(s, tr.mode, "C1-", drawstyle="steps-post", label="mode")
+    ax[2].plot(s, tr.gear + 1, "C2-", drawstyle="steps-post", label="gear")
+    ax[3].plot(s, tr.E_b / 1e6, "C3-", label="E_b")
+    ax[4].plot(s, tr.v * 3.6, "C4-", label="v")
+    ax[4].plot(s, tr.v_ref * 3.6, "k--", lw=0.8, label="v_ref (Level 3)")
     if lvl2 is not None:
         kw = dict(ls="--", lw=1.0, alpha=0.8, drawstyle="steps-post")
         ax[0].plot(lvl2["s"], lvl2["P_m"] / 1e3, color="C0", label="P_m (Level 2)", **kw)

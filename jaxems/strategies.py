@@ -969,6 +969,12 @@ class Result:
             out[k] = int(out[k])
         return out
 
+    def trip_trace(self) -> pl.Trace:
+        """The plant's trace over the trip's steps (those that start before its end), as NumPy
+        arrays."""
+        live = np.asarray(self.trace.t) < self["trip_time_s"]
+        return jax.tree_util.tree_map(lambda x: np.asarray(x)[live], self.trace)
+
     def trace_columns(self) -> dict[str, np.ndarray]:
         """The plant's time series over the trip, one entry a step (the steps that start before
         the trip's end), as named columns with their units: at the step's start t_s, s_m,
@@ -977,15 +983,11 @@ class Result:
         P_d_W at the wheels, service brakes included; P_f_W the fuel power, idling included)
         and lambda_b (the costate the controller applied). The trip's end is in `as_dict`
         (trip_time_s, delta_Eb_J)."""
-        tr = self.trace
-        live = np.asarray(tr.t) < self.as_dict()["trip_time_s"]
-        col = lambda x: np.asarray(x)[live]  # noqa: E731
-        return {"t_s": col(tr.t), "s_m": col(tr.s), "v_m_s": col(tr.v),
-                "v_ref_m_s": col(tr.v_ref), "E_b_J": col(tr.E_b),
-                "mode": np.asarray(ps.MODE_SHORT)[col(tr.mode)], "gear": col(tr.gear) + 1,
-                "P_d_W": col(tr.P_d), "P_e_W": col(tr.P_e), "P_m_W": col(tr.P_m),
-                "P_b_W": col(tr.P_b), "P_f_W": col(tr.P_f), "P_brake_W": col(tr.P_brake),
-                "lambda_b": col(tr.lam)}
+        tr = self.trip_trace()
+        return {"t_s": tr.t, "s_m": tr.s, "v_m_s": tr.v, "v_ref_m_s": tr.v_ref, "E_b_J": tr.E_b,
+                "mode": np.asarray(ps.MODE_SHORT)[tr.mode], "gear": tr.gear + 1,
+                "P_d_W": tr.P_d, "P_e_W": tr.P_e, "P_m_W": tr.P_m, "P_b_W": tr.P_b,
+                "P_f_W": tr.P_f, "P_brake_W": tr.P_brake, "lambda_b": tr.lam}
 
 
 
