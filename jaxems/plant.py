@@ -145,7 +145,7 @@ class Totals(NamedTuple):
     mode_switches: Any
     gear_switches: Any
     max_shortfall: Any  # largest (reference speed at position - speed), m/s
-    trip_time: Any  # s, time at which the route was completed
+    trip_time: Any  # s, time at which the route was completed (within its step)
 
 
 class PlantState(NamedTuple):
@@ -665,6 +665,14 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     served = jnp.where(arrived, s_stop, st.served)
     s1 = jnp.where(arrived, s_stop, s0 + ds)
     finished = (s1 >= track.length - 1e-3) & ~_stands(dwell, dt)
+    # the moment the trip ends, within its step: where the end is reached (at a stop, t_in;
+    # else under the step's constant acceleration, 2 d / (v0 + v_d), v_d^2 = v0^2 + 2 a d)
+    # and its stop's time, or the time a stop at the end still held the truck
+    d_end = jnp.clip(track.length - s0, 0.0, ds)
+    v_d = jnp.sqrt(jnp.maximum(v0 * v0 + 2.0 * (v1 - v0) / dt * d_end, 0.0))
+    t_end = jnp.where(v0 + v_d > 0, 2.0 * d_end / jnp.maximum(v0 + v_d, 1e-12), 0.0)
+    t_end = jnp.where(arrived, t_in + t_stop, jnp.clip(t_end, 0.0, dt))
+    t_fin = k * dt + jnp.where(standing, st.dwell, t_end)
 
     P_bi = pt.battery_internal(vp, P_b)
     E_b1 = jnp.clip(st.E_b - P_bi * dt - E_sync_b, 0.0, vp.E_b_max)
@@ -685,7 +693,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
         gear_switches=tot.gear_switches + (gear_sw & live),
         max_shortfall=jnp.where(live & ~standing,
                                 jnp.maximum(tot.max_shortfall, v_ref_here - v0), tot.max_shortfall),
-        trip_time=jnp.where(live & finished, (k + 1) * dt, tot.trip_time),
+        trip_time=jnp.where(live & finished, t_fin, tot.trip_time),
     )
     keep = lambda new, old: jnp.where(live, new, old)  # noqa: E731
     new = PlantState(

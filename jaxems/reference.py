@@ -1753,6 +1753,14 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         served1 = s_stop if arrived else served
         s1 = s_stop if arrived else s + ds
         finished = s1 >= length - 1e-3 and not dwell1 > 0.5 * dt
+        if standing:  # at the end, a stop's time left
+            t_fin = k * dt + dwell
+        elif arrived:
+            t_fin = k * dt + t_in + t_stop
+        else:  # the end within the step, at its constant acceleration
+            d_end = min(max(length - s, 0.0), ds)
+            v_d = math.sqrt(max(v * v + 2.0 * (v1 - v) / dt * d_end, 0.0))
+            t_fin = k * dt + (min(2.0 * d_end / (v + v_d), dt) if v + v_d > 0 else 0.0)
         E_b1 = min(max(E_b - (P_b + f.beta * P_b * P_b) * dt - E_sync_b, 0.0), f.E_b_max)
 
         live = not done
@@ -1772,7 +1780,7 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             if not standing:
                 tot["max_shortfall"] = max(tot["max_shortfall"], v_here - v)
             if finished:
-                tot["trip_time"] = (k + 1) * dt
+                tot["trip_time"] = t_fin
             s, v, E_b, mode, gear = s1, v1, E_b1, mode1, gear1
             open_left, dwell, served = max(opens - dt, 0.0), dwell1, served1
             done = finished

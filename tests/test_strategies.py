@@ -83,10 +83,28 @@ def test_energy_balance_closes_for_every_strategy(runs):
 
 
 def test_trip_time_within_one_percent_of_level3(runs):
+    # the 1 %; the conventional truck 1.5 %: it shifts down at the foot of the 12 %
+    # climb, where the switching cost prices the open second's time loss with the engine's
+    # largest force at the speed before it (Appendix C) and the plant then recovers the
+    # speed at a lower one, losing 1.5 s (1.04 % of the trip; see the README's checks)
     for name, r in runs.items():
         t3 = float(r.prediction.trip_time)
         assert r["level3_trip_time_s"] == t3, name  # reported with the run (JSON, sweeps)
-        assert abs(r["trip_time_s"] - t3) <= 0.01 * t3 + 1.0, name  # +1: whole plant steps
+        share = 0.015 if name == "conventional" else 0.01
+        assert 0.0 <= r["trip_time_s"] - t3 <= share * t3, (name, r["trip_time_s"], t3)
+
+
+def test_trip_time_is_where_the_last_step_reaches_the_end(runs):
+    # the trip ends within its last step, where that step's constant acceleration reaches the
+    # route's end (the short track ends at speed, no stop), not at the step's end
+    for name, r in runs.items():
+        t, s, v = (np.asarray(x) for x in (r.trace.t, r.trace.s, r.trace.v))
+        T = r["trip_time_s"]
+        k = int(np.searchsorted(t, T)) - 1  # the last step that starts before T
+        tau = T - t[k]
+        assert 0.0 < tau <= 1.0 and s[k] < r["length_m"] <= s[k + 1], name
+        a = v[k + 1] - v[k]  # m/s^2 over the step of 1 s
+        assert s[k] + v[k] * tau + 0.5 * a * tau**2 == pytest.approx(r["length_m"], abs=1e-6)
 
 
 def test_conventional_never_uses_the_battery(runs):
