@@ -130,11 +130,11 @@ def test_multilevel_close_to_the_dp_bound(runs):
     # the DP's optimum on the levels' model; on the plant, its decisions lose against it what
     # the plant does differently (switches open the driveline, the plant's steps are not the
     # plan's). On the levels' model the plans differ more: 6.94 MJ for the iteration's second,
-    # 6.67 for the bound's (README, "Ordering and gaps"). The gap was 0.22 % while the plant
-    # drove the motor against its service brakes where a plan's step drove and the plant's
-    # braked, and the plans counted a switch's open second on the new state's step: both cost
-    # the bound's decisions more than the iteration's (the bound 7.116 MJ then, 6.925 now; the
-    # iteration 7.132, 7.022)
+    # 6.67 for the bound's (docs/results_notes.md, "Ordering and gaps"). The gap was 0.22 %
+    # while the plant drove the motor against its service brakes where a plan's step drove
+    # and the plant's braked, and the plans counted a switch's open second on the new state's
+    # step: both cost the bound's decisions more than the iteration's (the bound 7.116 MJ
+    # then, 6.925 now; the iteration 7.132, 7.022)
     assert f_dp <= f_ml
     assert (f_ml - f_dp) / f_dp < 0.02
     # the MPC, at the guard on the side of Level 2's I2b sequence: 4.2 % above the bound
@@ -169,10 +169,11 @@ def test_charge_sustenance(runs):
     assert abs(runs["baseline"]["delta_Eb_J"]) < 0.04 * size
 
 
-@pytest.mark.xfail(strict=True, reason="known gap, README 'At another starting charge': on "
-                   "the short track at 25 t the plan empties the battery on the first climb "
-                   "from 30 % and ends 8.2 % of it high (26 % before the plant fixes, "
-                   "10.8 % before the trim came as close as its range allows)")
+@pytest.mark.xfail(strict=True, reason="known gap, docs/results_notes.md 'At another "
+                   "starting charge': on the short track at 25 t the plan empties the "
+                   "battery on the first climb from 30 % and ends 8.2 % of it high (26 % "
+                   "before the plant fixes, 10.8 % before the trim came as close as its "
+                   "range allows)")
 def test_multilevel_sustains_the_charge_from_another_start(runs):
     """Charge sustaining whatever the start: the iteration from 30 % of the battery (a new
     initial charge is an array leaf: no recompilation). Not met; strict, so that a fix shows."""
