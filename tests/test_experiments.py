@@ -233,7 +233,7 @@ def test_random_routes_rows_are_runs_and_the_summary_their_arithmetic(capsys):
     assert s["fuel_ratio_max"] == max(r["fuel_ratio"] for r in ml)
     assert s["off_charge"] == sum(abs(r["delta_Eb_pct"]) > 1.0 for r in ml)
     assert s["trip_beyond_target"] == sum(
-        abs(r["trip_time_s"] - r["level3_trip_time_s"]) > 0.01 * r["level3_trip_time_s"] + 1
+        abs(r["trip_time_s"] - r["level3_trip_time_s"]) > 0.01 * r["level3_trip_time_s"]
         for r in ml)
     assert "multilevel" in rr.format_table(d)
     assert rr.main(["--n", "2", "--strategies", "multilevel"]) == 1
