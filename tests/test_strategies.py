@@ -697,9 +697,12 @@ def launch_routes(draw):
 def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
     """On any route (`launch_routes`), conventional, baseline and multilevel reach its end with
     every figure finite, the battery within its limits (the conventional truck's untouched),
-    the energy balance closed, and within 10 % + 2 s of their Level 3 trip time. Over 60 such
-    random routes (`experiments/random_routes.py`, 2026-11-27) trip times were -3.6 to +5.5 %
-    (whole seconds of trips of 50-145 s). Fuel is not asserted: there multilevel burnt at most
+    the energy balance closed, and a trip at most 10 % + 2 s longer than their Level 3 trip
+    time, and no more than 1 s shorter (a stop's time ends at the nearest step: up to 0.5 s
+    early at each of the two stops; trucks that reached the final stop still rolling ended
+    their trip there, 2 s early, until 2026-11-28). Over 60 such random routes
+    (`experiments/random_routes.py`, 2026-11-28, sixth session) trip times were -0.22 to
+    +6.08 % of trips of 51-141 s. Fuel is not asserted: there multilevel burnt at most
     0.966 of the conventional truck's corrected fuel and the A-ECMS 0.998, but on a route that
     only climbs (300 m of 8 % at 15 t) the hybrids burn more than the conventional truck
     (multilevel 10.62, dp-bound 10.68, conventional 9.74 MJ): what the battery gives on the
@@ -720,7 +723,7 @@ def test_any_route_runs_to_its_end_with_its_energy_balanced(runs, case):
         assert 0.0 <= d["Eb_min_J"] <= d["Eb_max_J"] <= float(vp.E_b_max), name
         assert balance_closes(r, name, vp), name
         t3 = float(r.prediction.trip_time)
-        assert abs(d["trip_time_s"] - t3) <= 0.1 * t3 + 2.0, (name, d["trip_time_s"], t3)
+        assert -1.0 <= d["trip_time_s"] - t3 <= 0.1 * t3 + 2.0, (name, d["trip_time_s"], t3)
         if name == "conventional":
             assert d["delta_Eb_J"] == 0.0 and d["Eb_min_J"] == d["Eb_max_J"]
 
