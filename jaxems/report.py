@@ -496,8 +496,7 @@ def write_report(directory: str | Path, df=None) -> Path:
         ["route", "strategy", *grid_cols, "trip_time_s", "level3_trip_time_s",
          "trip_vs_level3_pct"],
         lambda n, k: f"configurations whose trip takes more than {100 * TRIP_SHARE:g} % longer "
-                     f"than the Level 3 prediction they followed ({n}; the {k} longest; the "
-                     "plant counts whole steps)")
+                     f"than the Level 3 prediction they followed ({n}; the {k} longest)")
     cols = ["route", "strategy", *grid_cols, "fuel_J", "fuel_corrected_J", "fuel_l_per_100km",
             "delta_Eb_J", "lambda_b", "mode_switches", "gear_switches", "trip_time_s",
             "saving_vs_conventional_pct", "saving_vs_baseline_pct", "status"]
