@@ -418,7 +418,7 @@ COMPARE_COLUMNS = [
     ("fuel_corrected_l_per_100km", "corr. l/100km", "13.2f", 1.0),
     ("saving_vs_conventional_pct", "vs conv. %", "10.1f", 1.0),
     ("saving_vs_baseline_pct", "vs base. %", "10.1f", 1.0),
-    ("trip_time_s", "trip s", "7.0f", 1.0),
+    ("trip_time_s", "trip s", "8.1f", 1.0),
     ("wall_s", "wall s", "7.1f", 1.0),
 ]
 
