@@ -14,7 +14,8 @@ The plant is the model of section 2 with what the EMS levels abstract away put b
   duration (open driveline, engine off in a hybrid, idling in a conventional truck). In the
   last second(s) of a stop (the longer open time) it engages the state the controller asks
   for, so that the switch's open driveline overlaps the standing time and the launch starts
-  when the stop ends, as a driver engages the gear before setting off.
+  when the stop ends, as a driver engages the gear before setting off (not at the route's
+  end, where the trip ends standing).
 - Traction limits: when the active mode and gear cannot deliver the demanded power the vehicle
   falls short of the reference speed; service brakes take braking power the powertrain cannot.
 - Battery limits: E_b never leaves [0, E_b_max]; the battery power is clipped and the engine
@@ -563,7 +564,9 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     # state that can run at this speed and deliver what is needed
     at_rest = standing | ((v0 <= 0) & (v1_tgt <= 0))
     t_open = _open_time(vp, True, True)  # the longer open time (a mode and gear switch)
-    engage = standing & ~_stands(st.dwell - jnp.maximum(t_open, dt), dt)
+    # (not at the route's end: there the trip ends standing)
+    engage = (standing & ~_stands(st.dwell - jnp.maximum(t_open, dt), dt)
+              & (s0 < track.length - 1e-3))
     n_g = vp.gear_ratio.shape[-1]
     s_cur = st.mode * n_g + st.gear
     s_cmd = cmd.mode * n_g + cmd.gear

@@ -1671,7 +1671,8 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
 
         # Level 0: what must be served, and the state the driveline takes
         at_rest = standing or (v <= 0 and v1_tgt <= 0)
-        engage = standing and not (dwell - max(t_open, dt) > 0.5 * dt)
+        engage = (standing and not (dwell - max(t_open, dt) > 0.5 * dt)
+                  and s < length - 1e-3)  # no launch at the route's end
         s_cur = mode * G + gear
         s_req = MO * G + gear if (at_rest and not engage) else int(c_mode[k]) * G + int(c_gear[k])
         a_ref = (v_next - v_here) / dt
