@@ -224,6 +224,9 @@ def test_trip_time_close_to_level3():
         t_rest = t[k] + min(2.0 * (s[k + 1] - s[k]) / v[k], 1.0)
         assert float(res.final.tot.trip_time) == pytest.approx(t_rest + 2.0, abs=1e-9)
         assert rel_balance(res, vp) < BALANCE_RTOL
+        # standing there in the open mode: no launch state engaged in the stop's last second
+        end = (t > t[k]) & (t < float(res.final.tot.trip_time))
+        assert end.sum() >= 2 and np.all(np.asarray(res.trace.mode)[end] == ps.MO)
 
 
 def test_open_driveline_during_switches():
