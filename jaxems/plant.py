@@ -658,13 +658,14 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     v1 = jnp.where(short, v1_s, v1_tgt)
     ds = jnp.where(short, ds_s, ds_tgt)
     P_wheel = jnp.where(short, (0.5 * vp.mass * (v1**2 - v0**2) + F0 * ds) / dt, P_wheel)
-    # the route's final stop reached still rolling (the step capped to end there, where its
-    # target could not stop within it): braked to rest there at the step's end, the speed's
-    # energy to the service brakes, to stand the stop's time as Level 3's trip does (at a stop
-    # on the way the next step brakes to rest where the truck stands; at the final stop the
-    # trip ended rolling, its stop's time and standing uncounted)
-    rolls_in = (has_stop & (s_stop >= track.length - 1e-3) & (d_stop - ds <= 1e-3)
-                & (v1 > 1e-9) & ~standing)
+    # a stop reached still rolling (the step capped to end there, where its target could not
+    # stop within it): braked to rest there at the step's end, the speed's energy to the
+    # service brakes, and the stop's time stood from there. Before, the next step braked the
+    # last 0.3 m/s or so away in a driving state (the conventional truck on Urban Delivery
+    # switched from the open mode into M_e in gear 1 and back there: 80 mode switches, now
+    # 54), and at the route's final stop the trip ended rolling, the stop's time, which
+    # Level 3's trip counts, uncounted
+    rolls_in = has_stop & (d_stop - ds <= 1e-3) & (v1 > 1e-9) & ~standing
     P_wheel = jnp.where(rolls_in, P_wheel - 0.5 * vp.mass * v1 * v1 / dt, P_wheel)
     v1 = jnp.where(rolls_in, 0.0, v1)
     P_brake = P_wheel - P_p

@@ -1746,8 +1746,8 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             P_wheel = (0.5 * f.mass * (v1**2 - v**2) + F0 * ds) / dt
         else:
             v1, ds = v1_tgt, ds_tgt
-        if (np.isfinite(s_stop) and s_stop >= length - 1e-3 and d_stop - ds <= 1e-3
-                and v1 > 1e-9 and not standing):  # the final stop reached rolling: to rest
+        if (np.isfinite(s_stop) and d_stop - ds <= 1e-3
+                and v1 > 1e-9 and not standing):  # a stop reached rolling: to rest there
             P_wheel -= 0.5 * f.mass * v1 * v1 / dt
             v1 = 0.0
         P_brake = P_wheel - P_p

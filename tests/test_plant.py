@@ -224,6 +224,10 @@ def test_trip_time_close_to_level3():
         t_rest = t[k] + min(2.0 * (s[k + 1] - s[k]) / v[k], 1.0)
         assert float(res.final.tot.trip_time) == pytest.approx(t_rest + 2.0, abs=1e-9)
         assert rel_balance(res, vp) < BALANCE_RTOL
+        # at a stop the truck stands: it never runs a step from a stop's position still
+        # moving (reached rolling, it is braked to rest at the end of the step that reaches it)
+        at_stop = np.isclose(s[:, None], [0.0, 800.0, float(ROUTE.length)], atol=1e-6).any(1)
+        assert at_stop.sum() > 10 and np.all(v[at_stop] == 0.0)
         # standing there in the open mode: no launch state engaged in the stop's last second
         end = (t > t[k]) & (t < float(res.final.tot.trip_time))
         assert end.sum() >= 2 and np.all(np.asarray(res.trace.mode)[end] == ps.MO)
