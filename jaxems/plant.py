@@ -658,18 +658,17 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     v1 = jnp.where(short, v1_s, v1_tgt)
     ds = jnp.where(short, ds_s, ds_tgt)
     P_wheel = jnp.where(short, (0.5 * vp.mass * (v1**2 - v0**2) + F0 * ds) / dt, P_wheel)
-    # a stop reached still rolling (the step capped to end there, where its target could not
-    # stop within it): braked to rest there at the step's end, the speed's energy to the
-    # service brakes, and the stop's time stood from there. Before, the next step braked the
-    # last 0.3 m/s or so away in a driving state (the conventional truck on Urban Delivery
-    # switched from the open mode into M_e in gear 1 and back there: 80 mode switches, now
-    # 54), and at the route's final stop the trip ended rolling, the stop's time, which
-    # Level 3's trip counts, uncounted
-    rolls_in = has_stop & (d_stop - ds <= 1e-3) & (v1 > 1e-9) & ~standing
-    P_wheel = jnp.where(rolls_in, P_wheel - 0.5 * vp.mass * v1 * v1 / dt, P_wheel)
-    v1 = jnp.where(rolls_in, 0.0, v1)
+    # a step that reaches a stop ends at rest there, and the stop's time runs from its arrival.
+    # One capped to end at the stop, where its target could not stop within it, reaches it
+    # still rolling: the service brakes take that speed's energy at the step's end. (Before,
+    # the next step braked the last 0.3 m/s or so away in a driving state: the conventional
+    # truck on Urban Delivery switched from the open mode into M_e in gear 1 and back there,
+    # 80 mode switches, now 54; and at the route's final stop the trip ended rolling, the
+    # stop's time, which Level 3's trip counts, uncounted)
+    arrived = has_stop & (d_stop - ds <= 1e-3) & ~standing
+    P_wheel = jnp.where(arrived, P_wheel - 0.5 * vp.mass * v1 * v1 / dt, P_wheel)
+    v1 = jnp.where(arrived, 0.0, v1)
     P_brake = P_wheel - P_p
-    arrived = has_stop & (d_stop - ds <= 1e-3) & (v1 <= 1e-9) & ~standing
     # braking to rest at constant deceleration reaches the stop 2 ds / v0 into the step (at
     # once when already at rest): the stop's time runs from there
     t_in = jnp.clip(jnp.where(v0 + v1 > 0, 2.0 * ds / jnp.maximum(v0 + v1, 1e-12), 0.0), 0.0, dt)

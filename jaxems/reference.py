@@ -1746,13 +1746,11 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             P_wheel = (0.5 * f.mass * (v1**2 - v**2) + F0 * ds) / dt
         else:
             v1, ds = v1_tgt, ds_tgt
-        if (np.isfinite(s_stop) and d_stop - ds <= 1e-3
-                and v1 > 1e-9 and not standing):  # a stop reached rolling: to rest there
+        arrived = np.isfinite(s_stop) and d_stop - ds <= 1e-3 and not standing
+        if arrived:  # at rest there at the step's end (reached rolling: the brakes take it)
             P_wheel -= 0.5 * f.mass * v1 * v1 / dt
             v1 = 0.0
         P_brake = P_wheel - P_p
-        arrived = (np.isfinite(s_stop) and d_stop - ds <= 1e-3 and v1 <= 1e-9
-                   and not standing)
         t_in = min(max(2.0 * ds / (v + v1) if v + v1 > 0 else 0.0, 0.0), dt)
         dwell1 = max(t_stop - (dt - t_in), 0.0) if arrived else max(dwell - dt, 0.0)
         served1 = s_stop if arrived else served
