@@ -31,7 +31,7 @@ config.update("jax_enable_x64", True)
 
 from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
-from jaxems.report import CHARGE_SHARE, off_charge  # noqa: E402
+from jaxems.report import CHARGE_SHARE, off_charge, trip_vs_level3_pct  # noqa: E402
 from jaxems.route import Route, Row, route_from_rows  # noqa: E402
 from jaxems.strategies import check_strategy, simulate  # noqa: E402
 
@@ -124,7 +124,7 @@ def run_routes(n: int = 60, seed: int = 1, grade_max: float = 8.0,
                 "delta_Eb_pct": _num(100 * r["delta_Eb_J"] / size),
                 "sustained": not off_charge(r["delta_Eb_J"], size),
                 "trip_time_s": _num(r["trip_time_s"]), "level3_trip_time_s": _num(t3),
-                "trip_pct": _num(100 * (r["trip_time_s"] - t3) / t3),
+                "trip_pct": _num(trip_vs_level3_pct(r["trip_time_s"], t3)),
             }
             print(f"random_routes: route {k} {mass:7.0f} kg {strategy:15s} {row['status']} "
                   f"{row['delta_Eb_pct']:+7.2f} % ({time.perf_counter() - t:.1f} s)",

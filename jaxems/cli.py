@@ -329,7 +329,7 @@ def cmd_simulate(args) -> int:
     costate, switch counts and the largest shortfall from the reference speed.
     """
     from .io import resolve_route, route_name
-    from .report import CHARGE_SHARE, off_charge
+    from .report import CHARGE_SHARE, off_charge, trip_vs_level3_pct
     from .strategies import check_strategy, level2_names, simulate
 
     check_strategy(args.strategy)  # before anything is loaded or compiled
@@ -376,7 +376,8 @@ def cmd_simulate(args) -> int:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
         if key == "trip_time_s":  # against the Level 3 prediction the run followed
             t3 = out["level3_trip_time_s"]
-            unit += f" (Level 3: {t3:.1f} s, {100 * (v / t3 - 1):+.2f} %)" if t3 > 0 else ""
+            unit += (f" (Level 3: {t3:.1f} s, {float(trip_vs_level3_pct(v, t3)):+.2f} %)"
+                     if t3 > 0 else "")
         rows.append((label, f"{text} {unit}".rstrip()))
     if level2 is not None:
         hint = " (more pieces: --option l2_pieces=N)" if "pieces-exhausted" in level2 else ""

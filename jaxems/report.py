@@ -347,6 +347,15 @@ def charge_missed(df, share: float = CHARGE_SHARE):
                          df["battery_MJ"].to_numpy(float) * 1e6, share))
 
 
+def trip_vs_level3_pct(trip_time_s, level3_trip_time_s):
+    """How much longer a trip took than the Level 3 prediction it followed, in % (arrays or
+    scalars; nan where there is no prediction, a trip time of 0)."""
+    t3 = np.asarray(level3_trip_time_s, float)
+    ok = t3 > 0
+    return np.where(ok, 100.0 * (np.asarray(trip_time_s, float) / np.where(ok, t3, 1.0) - 1.0),
+                    np.nan)
+
+
 def trip_long(df, share: float = TRIP_SHARE):
     """(len(df),) bool: finished runs whose trip takes more than share longer than Level 3's
     prediction it followed (`level3_trip_time_s`; False where the column is absent, as in
@@ -490,8 +499,8 @@ def write_report(directory: str | Path, df=None) -> Path:
                      "fuel prices the difference at lambda_b")
     slow = df[trip_long(df)]
     parts += _largest(
-        slow.assign(trip_vs_level3_pct=100 * (slow["trip_time_s"] / slow["level3_trip_time_s"]
-                                              - 1)),
+        slow.assign(trip_vs_level3_pct=trip_vs_level3_pct(slow["trip_time_s"],
+                                                          slow["level3_trip_time_s"])),
         "trip_vs_level3_pct",
         ["route", "strategy", *grid_cols, "trip_time_s", "level3_trip_time_s",
          "trip_vs_level3_pct"],
