@@ -216,8 +216,7 @@ def test_trip_time_close_to_level3():
     # (2 ds / v0 into it), or at that step's end where the step, capped to end at the stop,
     # reaches it rolling (the conventional truck here; its speed then braked away). It
     # stands there: idling, for the conventional truck (`test_conventional_idles...`)
-    for vp in (VP, VP.conventional()):
-        res = run(vp, -2.2)
+    for vp, res in ((VP, res), (VP.conventional(), run(VP.conventional(), -2.2))):
         t, s, v = (np.asarray(x) for x in (res.trace.t, res.trace.s, res.trace.v))
         k = int(np.flatnonzero(s < float(ROUTE.length) - 1e-3)[-1])  # the step that arrives
         assert s[k + 1] == pytest.approx(float(ROUTE.length)) and v[k + 1] == 0.0
