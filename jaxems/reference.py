@@ -1427,8 +1427,10 @@ def _pb_of_pm_state(f, c, P_m):
 
 
 def _pb_of_pbi(f, P_bi):
-    """Terminal power with internal power P_bi (the physical root of eq. 7)."""
-    return (math.sqrt(max(1.0 + 4.0 * f.beta * P_bi, 0.0)) - 1.0) / (2.0 * f.beta)
+    """Terminal power with internal power P_bi (the physical root of eq. 7, in the form
+    without cancellation: 2 P_bi / (1 + sqrt(1 + 4 beta P_bi)))."""
+    P_bi = max(P_bi, -0.25 / f.beta)
+    return 2.0 * P_bi / (1.0 + math.sqrt(max(1.0 + 4.0 * f.beta * P_bi, 0.0)))
 
 
 def _deliverable(f, c, E_b, dt, pb_plan=math.inf):

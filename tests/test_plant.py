@@ -286,6 +286,29 @@ def test_unfinished_route_is_reported():
     assert float(res.final.tot.trip_time) == 0.0
 
 
+@settings(max_examples=40, deadline=None)
+@given(log_beta=st.floats(-12.0, -3.0), share=st.floats(-1.5, 1.0))
+def test_terminal_power_inverts_eq7_in_float32_too(log_beta, share):
+    """`_pb_of_pbi` inverts P_bi = P_b + beta P_b^2 (eq. 7) on its physical root down to the
+    least loss coefficient the vehicle files accept (1e-12 / W), and in float32 to float32's
+    rounding away from the root's vertex (where any rounding of P_bi moves the root); an
+    internal power below its least value, -1 / (4 beta), gives the vertex, -1 / (2 beta).
+    share: P_bi in units of 1 / (4 beta), capped at 1 MW."""
+    beta = 10.0**log_beta
+    P_bi = min(share / (4.0 * beta), 1e6)
+    P_b = float(P._pb_of_pbi(VP.replace(beta=beta), P_bi))
+    if share < -1.0:
+        assert P_b == pytest.approx(-0.5 / beta, rel=1e-12)
+        return
+    assert P_b + beta * P_b * P_b == pytest.approx(P_bi, rel=1e-9, abs=1e-9 / beta)
+    assert P_b >= -0.5 / beta * (1 + 1e-12)  # the physical root, not the other
+    assert float(R._pb_of_pbi(VP.replace(beta=beta), P_bi)) == pytest.approx(P_b, rel=1e-12)
+    if share > -0.8:
+        vp32 = jax.tree.map(lambda x: np.asarray(x, np.float32), VP.replace(beta=beta))
+        got = P._pb_of_pbi(vp32, jnp.asarray(P_bi, jnp.float32))
+        assert got.dtype == jnp.float32 and float(got) == pytest.approx(P_b, rel=1e-6)
+
+
 @pytest.mark.parametrize("v", [0.0, 3.0, 15.0])
 def test_sync_energy_counts_each_inertia_that_spins_up(v):
     w = float(VP.gear_ratio[5] * VP.r_d * v)
