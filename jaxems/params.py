@@ -21,6 +21,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from .route import SPEED_MIN_KMH
+
 RPM = 2.0 * math.pi / 60.0  # rad/s per rpm
 KMH = 1.0 / 3.6  # m/s per km/h
 
@@ -142,7 +144,7 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("motor", "friction_lin_W_per_rad_s"): ("m0_lin", 1.0, "nonneg"),
     ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "nonneg"),
     ("motor", "inertia_kg_m2"): ("I_m", 1.0, "nonneg"),
-    ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "pos"),
+    ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "beta"),
     ("battery", "capacity_J"): ("E_b_max", 1.0, "pos"),
     ("battery", "initial_fraction"): ("soc0", 1.0, "unit"),
     ("gearbox", "base"): ("_gear_base", 1.0, "pos"),
@@ -154,11 +156,13 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "pos"),
     ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "pos"),
     ("driving", "max_deceleration_m_s2"): ("a_min", 1.0, "pos"),
-    ("driving", "cruise_speed_km_h"): ("v_cruise", KMH, "pos"),
+    ("driving", "cruise_speed_km_h"): ("v_cruise", KMH, "cruise"),
     ("driving", "prediction_engine_speed_rpm"): ("w_pred", RPM, "pos"),
 }
 _SECTIONS = sorted({s for s, _ in _SCHEMA})
 
+
+BETA_MIN = 1e-12  # 1/W: the least battery loss coefficient (see "beta" below)
 
 _NUMBER_RULES = {
     "finite": (lambda x: True, ""),
@@ -167,12 +171,19 @@ _NUMBER_RULES = {
     "frac": (lambda x: 0 < x <= 1, "must be in (0, 1]"),
     "unit": (lambda x: 0 <= x <= 1, "must be in [0, 1]"),
     "int": (lambda x: x == int(x) and 1 <= x <= 32, "must be a whole number from 1 to 32"),
+    # the battery's loss coefficient: Level 1's split divides by it (at 1e-320 a run's fuel
+    # was NaN); below this a battery loses less than 1 W at 1 MW, lossless for any purpose
+    "beta": (lambda x: x >= BETA_MIN, f"must be >= {BETA_MIN:g} (1/W)"),
+    # the cruise speed (in the file's km/h): not below the slowest speed Level 3 predicts
+    "cruise": (lambda x: x >= SPEED_MIN_KMH,
+               f"must be >= {SPEED_MIN_KMH:g} km/h, the slowest the prediction drives"),
 }
 
 
 def check_number(value: Any, kind: str, where: str, error: type = ValueError) -> float:
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
-    (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32); else raises `error` naming
+    (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, beta >= BETA_MIN, cruise >=
+    SPEED_MIN_KMH); else raises `error` naming
     `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{where}: expected a number (got {value!r})")
@@ -251,12 +262,20 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
     if not p.is_file():
         known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
         raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
+    return params_from_dict(read_toml(p, VehicleError), str(p))
+
+
+def read_toml(path: Path, error: type = ValueError) -> dict:
+    """The TOML document of the file `path` (UTF-8, a byte-order mark allowed); else `error`
+    naming the file: not UTF-8 (the byte), not valid TOML (the line and column)."""
     try:
-        with open(p, "rb") as fh:
-            doc = tomllib.load(fh)
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise error(f"{path}: not UTF-8 text (byte {e.start})") from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise VehicleError(f"{p}: not valid TOML: {e}") from None
-    return params_from_dict(doc, str(p))
+        raise error(f"{path}: not valid TOML: {e}") from None
 
 
 def check_vehicle(vp: VehicleParams) -> VehicleParams:
@@ -265,11 +284,11 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
     empty; else a `VehicleError` naming the field (and the vehicle's index in a batch). Files
     are checked as they load; this checks vehicles built or changed in Python at the API.
     Traced leaves (a host API called under `jit`) are left to the caller's concrete call."""
-    for field, _, kind in _SCHEMA.values():
+    for field, scale, kind in _SCHEMA.values():
         if field.startswith("_") or kind not in _NUMBER_RULES:
             continue
-        try:
-            x = np.asarray(getattr(vp, field), dtype=np.float64)
+        try:  # in the file's unit, which the rules are written in (km/h, rpm)
+            x = np.asarray(getattr(vp, field), dtype=np.float64) / scale
         except TypeError:  # a tracer
             continue
         flat = x.reshape(-1)

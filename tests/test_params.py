@@ -117,7 +117,10 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("engine", "min_torque_Nm", [-300.0, 100.0, -1500.0], "<= 0"),
         ("engine", "max_torque_rpm", [600.0, 500.0, 1400, 1600, 1800, 2300], "increasing"),
         ("engine", "max_torque_rpm", [600.0, "x", 1400, 1600, 1800, 2300], "numbers only"),
-        ("driving", "cruise_speed_km_h", -85.0, "must be > 0"),
+        ("driving", "cruise_speed_km_h", -85.0, "must be >= 1.8 km/h"),
+        ("driving", "cruise_speed_km_h", 1.0, "must be >= 1.8 km/h"),
+        ("battery", "loss_coefficient_per_W", 0.0, "must be >= 1e-12"),
+        ("battery", "loss_coefficient_per_W", 1e-320, "must be >= 1e-12"),
     ],
 )
 def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
@@ -169,6 +172,19 @@ def test_not_toml_and_no_such_vehicle(tmp_path):
         load_vehicle("no_such_truck")
 
 
+def test_vehicle_file_encoding(tmp_path):
+    """A vehicle file may start with a UTF-8 byte-order mark, as route and sweep files may;
+    bytes that are not UTF-8 are an error naming the file."""
+    text = REF.read_bytes()
+    p = tmp_path / "bom.toml"
+    p.write_bytes(b"\xef\xbb\xbf" + text)
+    assert float(load_vehicle(p).mass) == float(load_vehicle(REF).mass)
+    p = tmp_path / "latin1.toml"
+    p.write_bytes(text.replace(b"[vehicle]", b"# caf\xe9\n[vehicle]", 1))
+    with pytest.raises(VehicleError, match=re.escape(f"{p}: not UTF-8 text")):
+        load_vehicle(p)
+
+
 def test_params_from_dict_source_in_message():
     doc = _doc()
     doc["motor"]["efficiency"] = 0.0
@@ -210,6 +226,9 @@ def test_stack_vehicles():
         ("c_r", -0.001, "must be >= 0"),
         ("E_b_max", float("nan"), "expected a finite number"),
         ("we_max", 10.0, "must exceed we_min"),
+        ("beta", 1e-15, "must be >= 1e-12"),
+        # the rules read a value in the file's unit: 1 km/h as m/s, the message in km/h
+        ("v_cruise", 1.0 * KMH, r"must be >= 1.8 km/h.*\(got 1\.0"),
     ],
 )
 def test_check_vehicle_names_the_field_and_the_vehicle(field, value, why):
