@@ -566,6 +566,21 @@ def test_bad_option_values_name_the_option(name, value, says):
                           lam0=np.float32(-2.0)).kp == 0
 
 
+def test_same_open_time_only_for_vehicles_whose_open_times_are_equal():
+    """same_open_time=True selects Level 1's relaxation for dt_M == dt_G; for a vehicle whose
+    open times differ it is an error naming the option, not a silently different run; left
+    out, it is decided from the vehicles (checked before anything compiles)."""
+    vp2 = VP.replace(dt_G=2.0)
+    with pytest.raises(ValueError, match="^same_open_time=true: .*open times differ"):
+        S.simulate("short_track", vp2, "multilevel", same_open_time=True)
+    batch = stack_vehicles([VP, vp2])
+    with pytest.raises(ValueError, match="^same_open_time=true"):
+        S.simulate_batch("short_track", batch, "multilevel", options={"same_open_time": True})
+    assert S.resolve_options(S.Options(), batch).same_open_time is False
+    assert S.resolve_options(S.Options(), VP).same_open_time is True
+    assert S.resolve_options(S.Options(same_open_time=False), VP).same_open_time is False
+
+
 def test_default_chunk_on_a_cpu_and_on_an_accelerator(monkeypatch):
     for name in S.STRATEGIES:
         assert S.default_chunk(name, backend="cpu") == S.CHUNK[name]
