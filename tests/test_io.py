@@ -139,6 +139,9 @@ BAD = [
         "no duration",
     ),
     ("negative stop", "<s>,<v>,<grad>,<stop>\n0,0,0,-3\n100,50,0,0\n", 2, "<stop>", "negative"),
+    # a value beyond the header's columns was dropped; a column named twice read the first
+    ("long row", "<s>,<v>,<grad>,<stop>\n0,50,0,0,7\n100,50,0,0\n", 2, None, "5 values for 4"),
+    ("column twice", "<s>,<v>,<grad>,<v>\n0,50,0,0\n100,50,0,0\n", 1, "<v>", "appears 2 times"),
 ]
 
 
@@ -175,6 +178,8 @@ CSV_HEAD = "distance_m,speed_limit_km_h,gradient_pct,stop_s\n"
         ("0,25,0,0\n1e9,25,0,0\n", 3, "distance_m", "route length 1e\\+09 m outside"),
         ("0,0.001,0,0\n100,0.001,0,0\n", 2, "speed_limit_km_h", "below 1.8 km/h"),
         ("0,25,0,0\n0.001,25,0,0\n", 3, "distance_m", "outside 1 m"),
+        # a decimal comma: 1,5 % was read as 1 % with the 5 dropped
+        ("0,25,1,5,0\n100,25,0,0\n", 2, None, "5 values for 4 columns .*decimal comma"),
     ],
 )
 def test_bad_csv(tmp_path, body, line, col, words):
@@ -188,6 +193,20 @@ def test_bad_csv(tmp_path, body, line, col, words):
         assert f"line {line}" in msg
     if col is not None:
         assert f"column {col}" in msg
+
+
+def test_csv_column_named_twice_is_refused(tmp_path):
+    p = tmp_path / "dup.csv"
+    p.write_text("distance_m,speed_limit_km_h,Distance_m\n0,25,5\n100,25,6\n")
+    with pytest.raises(RouteError, match=r"line 1: column distance_m appears 2 times") as e:
+        load_route(p)
+    assert str(e.value).startswith(str(p))
+    q = tmp_path / "notes.csv"  # columns that are not read may repeat
+    q.write_text("distance_m,note,speed_limit_km_h,note\n0,a,25,b\n100,c,25,d\n")
+    assert float(load_route(q).length) == 100
+    q = tmp_path / "trailing.csv"  # empty cells past the header's (a spreadsheet's export)
+    q.write_text("distance_m,speed_limit_km_h\n0,25,,\n100,25,\n")
+    assert float(load_route(q).length) == 100
 
 
 def test_bad_crlf_bom_reports_the_right_line(tmp_path):

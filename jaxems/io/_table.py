@@ -40,7 +40,10 @@ def parse_table(
 
     required: field -> header name, for fields among s_m, v_kmh, grad_pct, stop_s.
     optional: field -> (header name, default value).
-    Header names match case-insensitively; other columns are ignored.
+    Header names match case-insensitively; other columns are ignored. A column read here
+    named twice in the header, and a row with more or fewer values than the header has
+    columns (a decimal comma: "1,5" for 1.5; empty cells past them, trailing commas, are
+    passed over), are `RouteError`s naming the file and line.
     """
     src = str(path)
     lines = read_lines(path)
@@ -48,6 +51,10 @@ def parse_table(
         raise RouteError(f"{src}: empty file (no header line)")
     head_no, head = lines[0]
     names = [h.strip().lower() for h in head.split(",")]
+    for name in [*required.values(), *(n for n, _ in optional.values())]:
+        if names.count(name.lower()) > 1:  # which one holds the values?
+            raise RouteError(f"{src}: line {head_no}: column {name} appears "
+                             f"{names.count(name.lower())} times (header has: {head})")
     idx: dict[str, int] = {}
     for field, name in required.items():
         if name.lower() not in names:
@@ -63,9 +70,13 @@ def parse_table(
     rows = []
     for no, text in lines[1:]:
         cells = [c.strip() for c in text.split(",")]
-        if len(cells) < len(names):
+        if not any(cells[len(names):]):  # empty cells past the header's (trailing commas)
+            cells = cells[:len(names)]
+        if len(cells) != len(names):  # more: a decimal comma, or a value without a column
+            hint = ("; decimal commas are not read: write 1.5, not 1,5"
+                    if len(cells) > len(names) else "")
             raise RouteError(
-                f"{src}: line {no}: {len(cells)} values for {len(names)} columns ({text})"
+                f"{src}: line {no}: {len(cells)} values for {len(names)} columns ({text}){hint}"
             )
         vals = dict(defaults)
         for field, k in idx.items():

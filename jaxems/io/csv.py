@@ -1,8 +1,9 @@
 """Reader of the jaxems route CSV format (`.csv`).
 
 Comma-separated with a header line; lines starting with '#' are comments; a UTF-8 byte-order
-mark and CRLF line ends are accepted. Columns (names exact, case-insensitive, any order; other
-columns are ignored):
+mark and CRLF line ends are accepted. Columns (names exact, case-insensitive, any order, each
+once; other columns are ignored; every row has a value for each column of the header, numbers
+with a decimal point, not a comma):
 
 =================== ========= ===========================================================
 column              unit      meaning
