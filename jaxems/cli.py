@@ -99,14 +99,29 @@ def check_output(path: str | None, flag: str, directory: bool = False) -> Path |
     directory, or none yet in a writable one (the caller makes it when it writes)."""
     if path is None:
         return None
+    if not path.strip():  # Path("") is the current directory
+        raise CLIError(f"{flag}: expected a {'directory' if directory else 'file'} name "
+                       f"(got {path!r})")
     p = Path(path)
     if p.exists() and p.is_dir() != directory:
         raise CLIError(f"{flag}: {path} is {'not ' if directory else ''}a directory")
     parent = p if p.is_dir() else p.parent
     if not parent.is_dir():
+        up = nearest_existing(parent)  # afile/x.csv: afile is a file, not a missing directory
+        if up.exists() and not up.is_dir():
+            raise CLIError(f"{flag}: {up} is not a directory")
         raise CLIError(f"{flag}: the directory {parent} does not exist")
     if not os.access(parent, os.W_OK | os.X_OK):
         raise CLIError(f"{flag}: the directory {parent} is not writable")
+    return p
+
+
+def nearest_existing(path: Path) -> Path:
+    """`path` or its nearest ancestor that exists (what stands where a file or directory is to
+    be made: a directory, or a file in the way); the root where none does."""
+    p = Path(path)
+    while not p.exists() and p.parent != p:
+        p = p.parent
     return p
 
 

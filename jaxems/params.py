@@ -171,6 +171,7 @@ _NUMBER_RULES = {
     "frac": (lambda x: 0 < x <= 1, "must be in (0, 1]"),
     "unit": (lambda x: 0 <= x <= 1, "must be in [0, 1]"),
     "int": (lambda x: x == int(x) and 1 <= x <= 32, "must be a whole number from 1 to 32"),
+    "zero_one": (lambda x: x in (0.0, 1.0), "must be 0 or 1"),
     # the battery's loss coefficient: Level 1's split divides by it (at 1e-320 a run's fuel
     # was NaN); below this a battery loses less than 1 W at 1 MW, lossless for any purpose
     "beta": (lambda x: x >= BETA_MIN, f"must be >= {BETA_MIN:g} (1/W)"),
@@ -182,8 +183,8 @@ _NUMBER_RULES = {
 
 def check_number(value: Any, kind: str, where: str, error: type = ValueError) -> float:
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
-    (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, beta >= BETA_MIN, cruise >=
-    SPEED_MIN_KMH); else raises `error` naming
+    (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, zero_one 0 or 1, beta >=
+    BETA_MIN, cruise >= SPEED_MIN_KMH); else raises `error` naming
     `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{where}: expected a number (got {value!r})")
@@ -262,18 +263,19 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
     if not p.is_file():
         known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
         raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
-    return params_from_dict(read_toml(p, VehicleError), str(p))
+    return params_from_dict(read_toml(p, VehicleError)[1], str(p))
 
 
-def read_toml(path: Path, error: type = ValueError) -> dict:
-    """The TOML document of the file `path` (UTF-8, a byte-order mark allowed); else `error`
-    naming the file: not UTF-8 (the byte), not valid TOML (the line and column)."""
+def read_toml(path: Path, error: type = ValueError) -> tuple[str, dict]:
+    """(text, TOML document) of the file `path` (UTF-8, a byte-order mark allowed); else
+    `error` naming the file: not UTF-8 (the byte), not valid TOML (the line and column). The
+    reading of vehicle and sweep files."""
     try:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise error(f"{path}: not UTF-8 text (byte {e.start})") from None
     try:
-        return tomllib.loads(text)
+        return text, tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
         raise error(f"{path}: not valid TOML: {e}") from None
 

@@ -8,11 +8,12 @@ Cartesian product of the listed values (first key slowest).
 
 Execution. The work is cut into chunks: (route, strategy, `batch_size` consecutive grid points).
 Each chunk is one call of `jaxems.strategies.simulate_batch` on a vehicle batch of exactly
-`batch_size` members (the last chunk of a route repeats its last point; the padding rows are
-dropped), with the same static number of time steps for every chunk of a route (the maximum
-over the route's whole grid, bucketed). So every chunk of a (strategy, route shape) has the
-same shapes and the jitted kernels compile once per (strategy, padded route length, step
-bucket), not once per chunk; new grid values never recompile.
+`batch_size` members, or of the grid's size where that is smaller (the last chunk of a route
+repeats its last point; the padding rows are dropped), with the same static number of time
+steps for every chunk of a route (the maximum over the route's whole grid, bucketed). So every
+chunk of a (strategy, route shape) has the same shapes and the jitted kernels compile once per
+(strategy, padded route length, step bucket), not once per chunk; new grid values never
+recompile.
 
 Nothing lost. Every finished chunk is written to ``DIR/chunks/<chunk id>.parquet`` atomically
 (temporary file, fsync, rename). Chunk ids are deterministic (route index and name, strategy,
@@ -64,12 +65,24 @@ from .params import (
     check_number,
     check_vehicle,
     load_vehicle,
+    read_toml,
 )
 from .report import CHARGE_SHARE, TRIP_SHARE, charge_missed, trip_long, write_report
-from .route import Route, RouteError
+from .route import DS_RANGE, Route, RouteError
 
 FORMAT_VERSION = 1
 BATCH_SIZE_MAX = 65536  # grid points a chunk at most (a chunk's arrays are padded to it)
+# Grid points a sweep at most (per route and strategy; also the most values of one grid key).
+# load_config builds every point (a dict each) and checks each point's vehicle: 1e6 points take
+# seconds and a few hundred MB, 1e7 took 18 s and 3 GB, 1e8 did not end. And 1e6 configurations
+# are already days of computing at the tens to hundreds of configurations per second a sweep
+# runs at; a larger study is several sweeps.
+GRID_MAX = 1_000_000
+# --devices at most (in-process sweeps; unless the machine has more cores). XLA's CPU client
+# runs every device's share on its own thread and meets them all at each collective: with 1000
+# devices that rendezvous stalled and XLA aborted the process (SIGABRT after 70 s of warnings),
+# 256 ran on a 2-core machine. More devices than cores gain nothing but smaller shares anyway.
+DEVICES_MAX = 256
 CONFIG_FILE = "sweep.json"
 SOURCE_COPY = "sweep.toml"
 CHUNK_DIR = "chunks"
@@ -95,13 +108,18 @@ GRID_KEYS: dict[str, tuple[str, float, str]] = {
     "battery_MJ": ("E_b_max", 1e6, "pos"),
     "motor_power_kW": ("pm_max", 1e3, "nonneg"),
     "motor_torque_Nm": ("tm_max", 1.0, "nonneg"),
-    "beta_per_W": ("beta", 1.0, "pos"),
+    "beta_per_W": ("beta", 1.0, "beta"),
     "engine_efficiency": ("eta_e", 1.0, "frac"),
     "initial_soc": ("soc0", 1.0, "unit"),
 }
-# Checks of the raw VehicleParams fields (by their own names), from the vehicle file schema.
-_FIELD_CHECK = {field: kind for (field, _, kind) in _SCHEMA.values() if not field.startswith("_")}
-_FIELD_CHECK["has_motor"] = "unit"
+# Checks of the raw VehicleParams fields (by their own names, in SI), from the vehicle file
+# schema; the cruise speed's rule reads km/h, the file's unit: a raw v_cruise (m/s) is checked
+# positive here and against the rule by `check_vehicle`, which every grid point's vehicle meets
+# (`_check_grid_vehicles`). has_motor: a hybrid or not, 1 or 0 (the plant reads > 0.5, the
+# powertrain scales the motor by it).
+_FIELD_CHECK = {field: "pos" if kind == "cruise" else kind
+                for (field, _, kind) in _SCHEMA.values() if not field.startswith("_")}
+_FIELD_CHECK["has_motor"] = "zero_one"
 
 TOP_KEYS = {
     "description": "free text, kept in the results directory",
@@ -230,6 +248,8 @@ def _grid_values(spec: Any, where: str) -> list:
         num = spec["num"]
         if isinstance(num, bool) or not isinstance(num, int) or num < 1:
             raise SweepError(f"{where}.num: must be a whole number >= 1 (got {num!r})")
+        if num > GRID_MAX:  # before the values are made: 1e8 of them did not end
+            raise SweepError(f"{where}.num: at most {GRID_MAX} values (got {num})")
         for k in ("start", "stop"):
             if isinstance(spec[k], bool) or not isinstance(spec[k], int | float):
                 raise SweepError(f"{where}.{k}: expected a number (got {spec[k]!r})")
@@ -237,6 +257,27 @@ def _grid_values(spec: Any, where: str) -> list:
     if isinstance(spec, list):
         return spec
     return [spec]
+
+
+def _check_precision(values: Any, scale: float, precision: str, where: str,
+                     indexed: bool = True) -> None:
+    """Each of `values` (user units; times `scale` in SI, as a chunk's vehicle holds them)
+    as JAX computes in `precision`: finite and, where not 0, at least the smallest normal
+    number (float32 holds magnitudes from 1.2e-38 to 3.4e38; XLA's CPU code flushes smaller
+    ones to 0). Else `SweepError` naming `where` (with the value's index where `indexed`):
+    float64 checks alone let float32 sweeps overflow into NaN results."""
+    user = np.ravel(np.asarray(values, dtype=np.float64))
+    si = user * scale
+    with np.errstate(over="ignore", under="ignore"):
+        held = si.astype(precision)
+    tiny, big = np.finfo(precision).tiny, np.finfo(precision).max
+    bad = np.flatnonzero(~np.isfinite(held) | ((si != 0) & (np.abs(held) < tiny)))
+    if bad.size:
+        i = int(bad[0])
+        hint = '; precision = "float64" holds more' if precision == "float32" else ""
+        raise SweepError(f"{where}{f'[{i}]' if indexed else ''}: {user[i]:g} is beyond what "
+                         f"{precision} holds (magnitudes {tiny / scale:.3g} to "
+                         f"{big / scale:.3g}, or 0){hint}")
 
 
 def _resolve_routes(entries: Any, base: Path, where: str, ds: float) -> tuple[RouteEntry, ...]:
@@ -312,14 +353,7 @@ def load_config(path: str | Path) -> SweepConfig:
         raise SweepError(f"{path}: a directory, not a sweep file")
     if not src.is_file():
         raise SweepError(f"{path}: no such sweep file")
-    try:
-        text = src.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise SweepError(f"{src}: not UTF-8 text (byte {e.start})") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as e:
-        raise SweepError(f"{src}: not valid TOML: {e}") from None
+    text, doc = read_toml(src, SweepError)
     unknown = [k for k in doc if k not in TOP_KEYS]
     if unknown:
         raise SweepError(f"{src}: unknown key {unknown[0]!r} (known keys: "
@@ -342,6 +376,9 @@ def load_config(path: str | Path) -> SweepConfig:
     except ValueError as e:
         raise SweepError(f"{src}: dt_s: {str(e).removeprefix('dt: ')}") from None
     ds = number("ds_m", 10.0, "pos")
+    if not DS_RANGE[0] <= ds <= DS_RANGE[1]:  # here, not as if a route file were wrong
+        raise SweepError(f"{src}: ds_m: must be from {DS_RANGE[0]:g} to {DS_RANGE[1]:g} m "
+                         f"(got {ds:g})")
     precision = doc.get("precision", "float32")
     if precision not in ("float32", "float64"):
         raise SweepError(f"{src}: precision: expected \"float32\" or \"float64\" "
@@ -418,7 +455,21 @@ def load_config(path: str | Path) -> SweepConfig:
         vals = tuple(_check_value(x, kind, f"{where}[{i}]") for i, x in enumerate(values))
         if len(set(vals)) != len(vals):
             raise SweepError(f"{where}: a value is listed twice ({list(vals)})")
+        _check_precision(vals, grid_field(key)[1], precision, where)
         grid[key] = vals
+    n_points = math.prod(len(v) for v in grid.values())
+    if n_points > GRID_MAX:  # before any point is made
+        raise SweepError(f"{src}: grid: {n_points} points ("
+                         f"{' x '.join(f'{len(v)} {k}' for k, v in grid.items())}); at most "
+                         f"{GRID_MAX} a sweep: split it into several sweeps")
+    # the vehicle file's values too, as the chunks hold them (those the grid does not set)
+    file_key = {field: (f"{section}.{key}", scale)
+                for (section, key), (field, scale, _) in _SCHEMA.items()}
+    for field, x in zip(VehicleParams._fields, vehicle, strict=True):
+        if field not in fields_seen:
+            name, scale = file_key.get(field, (field, 1.0))
+            _check_precision(np.asarray(x) / scale, scale, precision,
+                             f"{src}: vehicle: {name}", indexed=np.ndim(x) > 0)
 
     # every grid point's vehicle, as its chunk will build it: rules across fields (the
     # engine's speed range) and the grid's values against the vehicle file's
@@ -472,7 +523,8 @@ def strategy_options(d: dict | None, where: str = "options"):
 # ------------------------------------------------------------------------------------ chunks
 @dataclasses.dataclass(frozen=True)
 class Chunk:
-    """One unit of work: a route, a strategy and `batch_size` grid points (padded)."""
+    """One unit of work: a route, a strategy and `batch_size` grid points (padded; the grid's
+    size where that is smaller)."""
 
     id: str
     route_index: int
@@ -488,7 +540,10 @@ def _safe(name: str) -> str:
 
 def plan_chunks(cfg: SweepConfig) -> list[Chunk]:
     """All chunks of a sweep, in execution order (route, strategy, grid chunk); ids stable."""
-    G, B = cfg.grid_size, cfg.batch_size
+    # a grid smaller than batch_size is one chunk a route and strategy, all of one shape: no
+    # need to pad it to batch_size (1 point with batch_size 4096 computed 4096 runs)
+    G = cfg.grid_size
+    B = min(cfg.batch_size, G)
     n_chunks = math.ceil(G / B)
     out = []
     for ri, r in enumerate(cfg.routes):
@@ -730,7 +785,10 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     """Create the results directory or check that it holds this very sweep.
 
     Raises `SweepError` if it holds a different sweep (naming what changed), holds results of
-    something that is not a jaxems sweep, or (``resume``) has nothing to resume.
+    something that is not a jaxems sweep, or (``resume``) has nothing to resume. The record
+    is written before ``chunks/`` is made, so a run killed in between leaves a directory that
+    a rerun continues; an empty ``chunks/`` without a record (such a run of an earlier jaxems)
+    holds nothing to mix up and is taken as fresh.
     """
     meta_path = out / CONFIG_FILE
     if meta_path.exists():
@@ -741,18 +799,20 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
                 f"{meta.get('source', '?')}); refusing to mix them. Use another --out directory, "
                 f"or delete {out} to start over"
             )
+        (out / CHUNK_DIR).mkdir(exist_ok=True)  # a run killed after the record
         return
     if resume:
         raise SweepError(f"{out}: nothing to resume (no {CONFIG_FILE}); run without --resume")
-    if (out / CHUNK_DIR).exists() or (out / RESULTS_FILE).exists():
+    if finished_chunks(out) or (out / RESULTS_FILE).exists():
         raise SweepError(f"{out}: holds sweep results without {CONFIG_FILE}; refusing to mix "
                          f"them; use another --out directory")
-    (out / CHUNK_DIR).mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
     meta = {"fingerprint": cfg.fingerprint(), "canonical": cfg.canonical(),
             "source": str(cfg.source),
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
+    (out / CHUNK_DIR).mkdir(exist_ok=True)
 
 
 @contextlib.contextmanager
@@ -1057,14 +1117,50 @@ def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None
             return Client(scheduler, timeout=30), None
         except (OSError, TimeoutError) as e:
             raise SweepError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
-    if workers is None or workers < 1:
-        raise SweepError(f"--workers: expected a whole number >= 1 (got {workers})")
     env = {}
     if cache_dir is not None and not os.environ.get(CACHE_ENV):
         env[CACHE_ENV] = str(Path(cache_dir).resolve())
     cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                            dashboard_address=None, env=env)
     return Client(cluster), cluster
+
+
+def check_executor(workers: int | None, scheduler: str | None) -> None:
+    """--workers and --scheduler, before anything is written: not both, a whole number >= 1 of
+    workers, a Dask address of the scheduler (not yet reached), Dask installed where needed;
+    else `SweepError` naming the flag."""
+    if workers is not None and scheduler is not None:
+        raise SweepError("give either --workers or --scheduler, not both")
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int)
+                                or workers < 1):
+        raise SweepError(f"--workers: expected a whole number >= 1 (got {workers!r})")
+    if workers is None and scheduler is None:
+        return
+    try:
+        from distributed.comm import get_address_host_port
+    except ImportError:
+        raise SweepError("--workers and --scheduler need Dask distributed: "
+                         "pip install 'jaxems[distributed]'") from None
+    if scheduler is not None:
+        try:
+            if not isinstance(scheduler, str) or not scheduler.strip():
+                raise ValueError("empty")
+            get_address_host_port(scheduler)
+        except (ValueError, TypeError) as e:
+            raise SweepError(f"--scheduler: {scheduler!r} is not a Dask scheduler address, "
+                             f"expected tcp://HOST:PORT ({e})") from None
+
+
+def check_out_dir(out: Path) -> None:
+    """--out before anything is written: a writable directory, or a path that can be made one
+    (its nearest existing ancestor a writable directory); else `SweepError` naming --out."""
+    from .cli import nearest_existing
+
+    p = nearest_existing(out)
+    if not p.is_dir():
+        raise SweepError(f"--out: {p} is not a directory" + (f" (in {out})" if p != out else ""))
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise SweepError(f"--out: the directory {p} is not writable")
 
 
 def run_sweep(
@@ -1088,10 +1184,10 @@ def run_sweep(
     sweep; quiet: no progress bar; report: write the report at the end; on_chunk: called after
     each chunk file is written (tests).
     """
-    if workers is not None and scheduler is not None:
-        raise SweepError("give either --workers or --scheduler, not both")
+    check_executor(workers, scheduler)
     cfg = load_config(sweep_file)
     out = Path(out) if out is not None else default_out(sweep_file)
+    check_out_dir(out)
     prepare_dir(cfg, out, resume=resume)
     with dir_lock(out):
         return _run_locked(cfg, out, workers=workers, scheduler=scheduler, quiet=quiet,
@@ -1236,13 +1332,17 @@ def cmd_sweep(args) -> int:
 
 def _in_process_devices(n: int | None) -> None:
     """An in-process sweep splits each chunk over `n` CPU devices (default: one per core,
-    `shard.use_host_devices`), where JAX has not started yet in this process (the command
-    line); otherwise it keeps the devices it has."""
+    `shard.use_host_devices`; at most `DEVICES_MAX` or the cores), where JAX has not started
+    yet in this process (the command line); otherwise it keeps the devices it has."""
     from . import shard
 
+    cores = os.cpu_count() or 1
     if n is not None and n < 1:
         raise ValueError(f"--devices: must be a whole number >= 1 (got {n})")
-    n = n or os.cpu_count() or 1
+    if n is not None and n > max(DEVICES_MAX, cores):
+        raise ValueError(f"--devices: at most {max(DEVICES_MAX, cores)} (got {n}; this machine "
+                         f"has {cores} cores, and more devices than cores gain nothing)")
+    n = n or cores
     if shard.backends_started() is False:
         shard.use_host_devices(n)
 

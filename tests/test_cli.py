@@ -90,6 +90,39 @@ def test_interrupted_sweep_says_how_to_go_on(capsys, monkeypatch, tmp_path):
     assert code == 130 and "interrupted; finished chunks are kept" in err and "--resume" in err
 
 
+def test_sweep_devices_are_capped(capsys, tmp_path):
+    """--devices 1000 flooded stderr with XLA's rendezvous warnings and aborted after 70 s;
+    refused before JAX starts (`sweep.DEVICES_MAX`)."""
+    from jaxems import shard
+
+    started = shard.backends_started()
+    code, out, err = run(capsys, "sweep", str(tmp_path / "x.toml"), "--devices", "100000")
+    assert code == 1 and out == "" and err.count("\n") == 1
+    assert err.startswith("jaxems: error: --devices: at most ") and "(got 100000;" in err
+    assert shard.backends_started() == started  # nothing started
+
+
+def test_output_paths_name_the_flag(tmp_path):
+    """A file where a directory should be, and an empty path (the current directory), were
+    "the directory afile does not exist" and "--csv:  is a directory"."""
+    from jaxems.cli import CLIError, check_output
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    for path, flag, directory, words in [
+        (afile / "x.csv", "--csv", False, f"--csv: {afile} is not a directory"),
+        (afile / "sub" / "x.csv", "--plot", False, f"--plot: {afile} is not a directory"),
+        (afile / "traces", "--traces", True, f"--traces: {afile} is not a directory"),
+        ("", "--csv", False, "--csv: expected a file name (got '')"),
+        ("", "--traces", True, "--traces: expected a directory name (got '')"),
+        (tmp_path / "no" / "x.csv", "--csv", False, "--csv: the directory"),
+    ]:
+        with pytest.raises(CLIError) as e:
+            check_output(str(path), flag, directory)
+        assert str(e.value).startswith(words), e.value
+    assert check_output(str(tmp_path / "x.csv"), "--csv") == tmp_path / "x.csv"
+
+
 def test_scripts_end_bad_input_in_one_line(capsys):
     # the experiments' and benchmarks' entry (`script_main`) and argument types
     import argparse

@@ -135,6 +135,7 @@ def test_simulate_checks_its_output_files_before_running(capsys, tmp_path, monke
     for flag, path, words in [
         ("--csv", tmp_path / "missing" / "run.csv", "--csv: the directory"),
         ("--plot", tmp_path, "--plot: " + str(tmp_path) + " is a directory"),
+        ("--csv", "", "--csv: expected a file name"),  # was "--csv:  is a directory"
     ]:
         code, out, err = run(capsys, "simulate", "short_track", flag, str(path))
         assert code == 1 and out == ""

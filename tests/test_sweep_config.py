@@ -79,11 +79,39 @@ def test_good_file_parses(tmp_path):
         # a chunk's arrays are padded to batch_size: 1e9 ran out of memory on one grid point
         (GOOD.replace("batch_size = 4", "batch_size = 1000000000"),
          r"batch_size: at most 65536"),
+        # checked as float32 holds them: 1e39 kg ran into a JAX overflow and a crash, 1e33 MJ
+        # into NaN fuel with status ok, 1e-50 into 0
+        (GOOD.replace("20000, 30000", "20000, 1e39"),
+         r"s\.toml: grid\.mass_kg\[1\]: 1e\+39 is beyond what float32 holds"),
+        (GOOD.replace("[2, 4]", "[2, 1e33]"),
+         r"s\.toml: grid\.battery_MJ\[1\]: 1e\+33 is beyond what float32 holds"),
+        (GOOD + "c_r = [1e-50]\n", r"grid\.c_r\[0\]: 1e-50 is beyond what float32"),
+        # the vehicle file's rules: a loss coefficient that ran to NaN fuel, a motor halved
+        (GOOD + "beta_per_W = [1e-50]\n", r"grid\.beta_per_W\[0\]: must be >= 1e-12"),
+        (GOOD + "has_motor = [0.5]\n", r"grid\.has_motor\[0\]: must be 0 or 1"),
+        # a raw field in SI (m/s) against the file's rule in km/h, by check_vehicle
+        (GOOD + "v_cruise = [0.3]\n", r"grid: v_cruise\[0\]: must be >= 1\.8 km/h"),
+        # ds_m was blamed on the route file ("short_track.csv: ds must be ...")
+        (GOOD.replace("batch_size = 4", "ds_m = 0.5\nbatch_size = 4"),
+         r"s\.toml: ds_m: must be from 1 to 100 m \(got 0\.5\)"),
+        # grid sizes that hung load_config (1e8 values; 1e7 took 18 s and 3 GB)
+        (GOOD.replace("[2, 4]", "{start = 1, stop = 5, num = 100000000}"),
+         r"s\.toml: grid\.battery_MJ\.num: at most 1000000 values \(got 100000000\)"),
+        (GOOD.replace("[20000, 30000, 40000]", "{start = 1e4, stop = 5e4, num = 1000}")
+         .replace("[2, 4]", "{start = 1, stop = 5, num = 1001}"),
+         r"s\.toml: grid: 1001000 points \(1000 mass_kg x 1001 battery_MJ\); at most 1000000"),
     ],
 )
 def test_bad_sweep_files_are_refused_naming_key_and_file(tmp_path, text, match):
     with pytest.raises(sw.SweepError, match=match):
         sw.load_config(write(tmp_path, text))
+
+
+def test_raw_fields_in_si_against_the_file_rules(tmp_path):
+    """A raw field's grid values are in SI: v_cruise = 1 m/s (3.6 km/h) is above the vehicle
+    file's 1.8 km/h, though 1 < 1.8; has_motor 0 and 1 are a conventional truck and a hybrid."""
+    cfg = sw.load_config(write(tmp_path, GOOD + "v_cruise = [1.0]\nhas_motor = [0, 1]\n"))
+    assert cfg.grid["v_cruise"] == (1.0,) and cfg.grid["has_motor"] == (0.0, 1.0)
 
 
 def test_sweep_file_not_text_or_a_directory(tmp_path):
@@ -111,6 +139,48 @@ def test_bad_input_stops_before_any_computation(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "grid.mass_kg[0]: must be > 0" in err and "s.toml" in err
     assert not out.exists()
+
+
+def test_float32_range_of_vehicle_values():
+    """The vehicle file's values are held in the sweep's precision too (`_check_precision`)."""
+    with pytest.raises(sw.SweepError, match=r"^v: vehicle\.mass_kg: 1e\+39 is beyond what "
+                                            r"float32 holds .*precision = \"float64\""):
+        sw._check_precision(1e39, 1.0, "float32", "v: vehicle.mass_kg", indexed=False)
+    with pytest.raises(sw.SweepError, match=r"^v: te_max\[2\]: 1e\+39 is beyond"):
+        sw._check_precision([1.0, 2.0, 1e39], 1.0, "float32", "v: te_max")
+    sw._check_precision([1e39, 0.0, -5.0], 1.0, "float64", "v")  # float64 holds them
+    with pytest.raises(sw.SweepError, match=r"grid\.battery_MJ\[0\]: 1e\+33 .*3\.4e\+32"):
+        sw._check_precision([1e33], 1e6, "float32", "grid.battery_MJ")  # in MJ, 1e39 J
+
+
+@pytest.mark.parametrize(
+    "kw, out, words",
+    [
+        ({"workers": 0}, "out", "--workers: expected a whole number >= 1 (got 0)"),
+        ({"scheduler": "nonsense"}, "out",
+         "--scheduler: 'nonsense' is not a Dask scheduler address, expected tcp://HOST:PORT"),
+        ({}, "afile", "--out: {tmp}/afile is not a directory"),
+        ({}, "afile/sub", "--out: {tmp}/afile is not a directory (in {tmp}/afile/sub)"),
+    ],
+)
+def test_bad_flags_stop_before_the_directory_is_made(tmp_path, capsys, monkeypatch, kw, out,
+                                                     words):
+    """--workers, --scheduler and --out are checked before prepare_dir writes anything (the
+    directory and sweep.json were made, then `--workers 0` refused; `--out afile` said only
+    "[Errno 20] Not a directory: 'afile/chunks'")."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(sw, "_in_process_devices", lambda n: None)  # this process's devices
+    p = write(tmp_path, GOOD)
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(sw.SweepError) as e:
+        sw.run_sweep(p, tmp_path / out, quiet=True, **kw)
+    assert str(e.value).startswith(words.replace("{tmp}", str(tmp_path)))
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["afile", "s.toml"]
+    argv = [str(p), "--out", str(tmp_path / out)] + [f"--{k}={v}" for k, v in kw.items()]
+    assert sw.main(argv) == 1  # the command: one line naming the flag
+    err = capsys.readouterr().err
+    assert err.startswith("jaxems: error: --") and err.count("\n") == 1
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["afile", "s.toml"]
 
 
 def test_globs_relative_paths_and_ranges(tmp_path):
@@ -143,6 +213,41 @@ def test_changed_sweep_in_existing_directory_is_refused(tmp_path):
         sw.prepare_dir(changed, out)
     with pytest.raises(sw.SweepError, match="nothing to resume"):
         sw.prepare_dir(changed, tmp_path / "fresh", resume=True)
+
+
+def test_a_run_killed_while_it_makes_its_directory_runs_again(tmp_path, monkeypatch):
+    """chunks/ was made before sweep.json: a run killed in between left a directory that a
+    rerun refused ("holds sweep results without sweep.json") and --resume did not know."""
+    cfg = sw.load_config(write(tmp_path, GOOD))
+    out = tmp_path / "out"
+    write_bytes = sw.atomic_write_bytes
+
+    def killed_at_the_record(path, data):
+        if path.name == sw.CONFIG_FILE:
+            raise KeyboardInterrupt
+        write_bytes(path, data)
+
+    monkeypatch.setattr(sw, "atomic_write_bytes", killed_at_the_record)
+    with pytest.raises(KeyboardInterrupt):
+        sw.prepare_dir(cfg, out)
+    monkeypatch.undo()
+    assert not (out / "chunks").exists()
+    sw.prepare_dir(cfg, out)  # starts afresh
+    assert (out / "sweep.json").exists() and (out / "chunks").is_dir()
+    (out / "chunks").rmdir()  # killed after the record: the rerun makes chunks/
+    sw.prepare_dir(cfg, out, resume=True)
+    assert (out / "chunks").is_dir()
+    # such a directory from an earlier jaxems: an empty chunks/, no record -> fresh
+    half = tmp_path / "half"
+    (half / "chunks").mkdir(parents=True)
+    sw.prepare_dir(cfg, half)
+    assert (half / "sweep.json").exists()
+    # finished chunks without a record are still refused
+    other = tmp_path / "other"
+    (other / "chunks").mkdir(parents=True)
+    (other / "chunks" / "x.parquet").write_bytes(b"x")
+    with pytest.raises(sw.SweepError, match="holds sweep results without sweep.json"):
+        sw.prepare_dir(cfg, other)
 
 
 def test_results_of_other_code_are_refused_and_the_demo_starts_over(tmp_path, monkeypatch,
@@ -206,8 +311,15 @@ def test_chunks_cover_every_point_once_with_equal_shapes(tmp_path_factory, sizes
         mine = [c for c in chunks if c.strategy == s]
         real = [i for c in mine for i in c.grid_index[: c.n_real]]
         assert sorted(real) == list(range(G))  # every point exactly once
-        assert all(len(c.grid_index) == batch for c in mine)  # one shape per route
+        assert all(len(c.grid_index) == min(batch, G) for c in mine)  # one shape per route
         assert all(set(c.grid_index[c.n_real:]) <= {c.grid_index[c.n_real - 1]} for c in mine)
+
+
+def test_a_grid_smaller_than_batch_size_is_not_padded_to_it(tmp_path):
+    """1 point with batch_size = 4096 computed 4096 runs; one chunk, one shape, either way."""
+    text = GOOD.replace("batch_size = 4", "batch_size = 4096").replace("[2, 4]", "[2]")
+    chunks = sw.plan_chunks(sw.load_config(write(tmp_path, text)))
+    assert [(len(c.grid_index), c.n_real) for c in chunks] == [(3, 3), (3, 3)]
 
 
 def _savings_reference(df: pd.DataFrame, ref: str) -> np.ndarray:
