@@ -1766,7 +1766,17 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
             d_end = min(max(length - s, 0.0), ds)
             v_d = math.sqrt(max(v * v + 2.0 * (v1 - v) / dt * d_end, 0.0))
             t_fin = k * dt + (min(2.0 * d_end / (v + v_d), dt) if v + v_d > 0 else 0.0)
-        E_b1 = min(max(E_b - (P_b + f.beta * P_b * P_b) * dt - E_sync_b, 0.0), f.E_b_max)
+        # the step that ends the trip counts up to its end: the share of its distance up to
+        # the end where it reaches it moving (there at its speed), of its time where a stop
+        # at the end held it
+        share = 1.0
+        if finished and standing:
+            share = dwell / dt
+        elif finished and not arrived:
+            share = d_end / ds if ds > 0 else 1.0
+            v1, s1 = v_d, s + d_end
+        E_b1 = min(max(E_b - (P_b + f.beta * P_b * P_b) * dt * share - E_sync_b, 0.0),
+                   f.E_b_max)
 
         live = not done
         steps.append(RefPlantStep(s=s, v=v, E_b=E_b, mode=mode1, gear=gear1,
@@ -1774,11 +1784,12 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
                                   P_b=P_b * live, P_f=(P_f + P_idle) * live,
                                   P_brake=P_brake * live, v_ref=v_here))
         if live:
-            for key, x in (("fuel", (P_f + P_idle) * dt + E_sync_f), ("road", F0 * ds),
-                           ("loss_engine", (P_f - P_e + P_idle) * dt),
-                           ("loss_slip", (P_e - P_out) * dt), ("loss_motor", (P_b - P_m) * dt),
-                           ("loss_battery", f.beta * P_b * P_b * dt),
-                           ("loss_brake", -P_brake * dt), ("loss_sync", E_sync_b + E_sync_f)):
+            h = dt * share
+            for key, x in (("fuel", (P_f + P_idle) * h + E_sync_f), ("road", F0 * ds * share),
+                           ("loss_engine", (P_f - P_e + P_idle) * h),
+                           ("loss_slip", (P_e - P_out) * h), ("loss_motor", (P_b - P_m) * h),
+                           ("loss_battery", f.beta * P_b * P_b * h),
+                           ("loss_brake", -P_brake * h), ("loss_sync", E_sync_b + E_sync_f)):
                 tot[key] += x
             tot["mode_switches"] += int(mode_sw)
             tot["gear_switches"] += int(gear_sw)

@@ -96,15 +96,20 @@ def test_trip_time_within_one_percent_of_level3(runs):
 
 def test_trip_time_is_where_the_last_step_reaches_the_end(runs):
     # the trip ends within its last step, where that step's constant acceleration reaches the
-    # route's end (the short track ends at speed, no stop), not at the step's end
+    # route's end (the short track ends at speed, no stop), not at the step's end; the truck
+    # ends there, at its speed there, and its totals count the step up to there (the energy
+    # balance, tested above, holds with the kinetic energy at that speed)
     for name, r in runs.items():
         t, s, v = (np.asarray(x) for x in (r.trace.t, r.trace.s, r.trace.v))
-        T = r["trip_time_s"]
+        T, L = r["trip_time_s"], r["length_m"]
         k = int(np.searchsorted(t, T)) - 1  # the last step that starts before T
         tau = T - t[k]
-        assert 0.0 < tau <= 1.0 and s[k] < r["length_m"] <= s[k + 1], name
-        a = v[k + 1] - v[k]  # m/s^2 over the step of 1 s
-        assert s[k] + v[k] * tau + 0.5 * a * tau**2 == pytest.approx(r["length_m"], abs=1e-6)
+        fin = r.plant.final
+        assert 0.0 < tau <= 1.0 and s[k] < L and float(fin.s) == pytest.approx(L, abs=1e-9)
+        v_end = float(fin.v)
+        assert v_end > 0 and s[k + 1] == float(fin.s) and v[k + 1] == v_end, name
+        # constant acceleration from v[k] to v_end over the distance L - s[k] takes tau
+        assert tau == pytest.approx(2.0 * (L - s[k]) / (v[k] + v_end), rel=1e-9), name
 
 
 def test_conventional_never_uses_the_battery(runs):
@@ -125,7 +130,7 @@ def test_hybrids_save_fuel_in_the_papers_order(runs):
 
 def test_multilevel_close_to_the_dp_bound(runs):
     f_ml, f_dp = corrected(runs["multilevel"]), corrected(runs["dp-bound"])
-    # target: within 1 %, not met: the iteration is 1.40 % above the bound here (2.45 % while
+    # target: within 1 %, not met: the iteration is 1.49 % above the bound here (2.45 % while
     # the plant held the speed it had in M_m below the plan's battery energy). The bound is
     # the DP's optimum on the levels' model; on the plant, its decisions lose against it what
     # the plant does differently (switches open the driveline, the plant's steps are not the
@@ -134,10 +139,10 @@ def test_multilevel_close_to_the_dp_bound(runs):
     # while the plant drove the motor against its service brakes where a plan's step drove
     # and the plant's braked, and the plans counted a switch's open second on the new state's
     # step: both cost the bound's decisions more than the iteration's (the bound 7.116 MJ
-    # then, 6.925 now; the iteration 7.132, 7.022)
+    # then, 6.911 now; the iteration 7.132, 7.014)
     assert f_dp <= f_ml
     assert (f_ml - f_dp) / f_dp < 0.02
-    # the MPC, at the guard on the side of Level 2's I2b sequence: 4.2 % above the bound
+    # the MPC, at the guard on the side of Level 2's I2b sequence: 4.3 % above the bound
     assert 0.0 < (corrected(runs["multilevel-mpc"]) - f_dp) / f_dp < 0.05
 
 
