@@ -1107,11 +1107,9 @@ def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None
     """
     if workers is None and scheduler is None:
         return None, None
-    try:
-        from dask.distributed import Client, LocalCluster
-    except ImportError:
-        raise SweepError("--workers and --scheduler need Dask distributed: "
-                         "pip install 'jaxems[distributed]'") from None
+    check_executor(workers, scheduler)  # (Dask installed: run_sweep checked it before)
+    from dask.distributed import Client, LocalCluster
+
     if scheduler is not None:
         try:
             return Client(scheduler, timeout=30), None
