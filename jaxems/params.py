@@ -145,15 +145,15 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "nonneg"),
     ("motor", "inertia_kg_m2"): ("I_m", 1.0, "nonneg"),
     ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "beta"),
-    ("battery", "capacity_J"): ("E_b_max", 1.0, "pos"),
+    ("battery", "capacity_J"): ("E_b_max", 1.0, "capacity"),
     ("battery", "initial_fraction"): ("soc0", 1.0, "unit"),
     ("gearbox", "base"): ("_gear_base", 1.0, "pos"),
     ("gearbox", "gears"): ("_gears", 1.0, "int"),
     ("gearbox", "final_drive_rpm_per_m_s"): ("r_d", RPM, "pos"),
     ("switching", "mode_open_s"): ("dt_M", 1.0, "nonneg"),
     ("switching", "gear_open_s"): ("dt_G", 1.0, "nonneg"),
-    ("fuel", "lower_heating_value_J_per_kg"): ("lhv", 1.0, "pos"),
-    ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "pos"),
+    ("fuel", "lower_heating_value_J_per_kg"): ("lhv", 1.0, "lhv"),
+    ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "density"),
     ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "pos"),
     ("driving", "max_deceleration_m_s2"): ("a_min", 1.0, "pos"),
     ("driving", "cruise_speed_km_h"): ("v_cruise", KMH, "cruise"),
@@ -175,6 +175,12 @@ _NUMBER_RULES = {
     # the battery's loss coefficient: Level 1's split divides by it (at 1e-320 a run's fuel
     # was NaN); below this a battery loses less than 1 W at 1 MW, lossless for any purpose
     "beta": (lambda x: x >= BETA_MIN, f"must be >= {BETA_MIN:g} (1/W)"),
+    # plausible ranges where a unit mixed up runs on, silently wrong: a battery of 100 "J"
+    # meant as kWh or MJ (whose dE_b vanishes in float64 at 1e30 J), a heating value in MJ/kg
+    # (42.8 for diesel's 42.8e6 J/kg: a million times the fuel), a density in kg/m^3
+    "capacity": (lambda x: 1e4 <= x <= 1e11, "must be from 1e4 to 1e11 J (10 kJ to 28 MWh)"),
+    "lhv": (lambda x: 1e6 <= x <= 1e9, "must be from 1e6 to 1e9 J/kg (diesel: 42.8e6)"),
+    "density": (lambda x: 0.01 <= x <= 10, "must be from 0.01 to 10 kg/l (diesel: 0.83)"),
     # the cruise speed (in the file's km/h): not below the slowest speed Level 3 predicts
     "cruise": (lambda x: x >= SPEED_MIN_KMH,
                f"must be >= {SPEED_MIN_KMH:g} km/h, the slowest the prediction drives"),
@@ -184,7 +190,8 @@ _NUMBER_RULES = {
 def check_number(value: Any, kind: str, where: str, error: type = ValueError) -> float:
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
     (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, zero_one 0 or 1, beta >=
-    BETA_MIN, cruise >= SPEED_MIN_KMH); else raises `error` naming
+    BETA_MIN, cruise >= SPEED_MIN_KMH, and the plausible ranges of capacity, lhv and
+    density); else raises `error` naming
     `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{where}: expected a number (got {value!r})")
@@ -321,7 +328,9 @@ def with_overrides(
     if mass_kg is not None:
         vp = vp.replace(mass=check_number(mass_kg, "pos", "mass_kg", VehicleError))
     if battery_MJ is not None:
-        vp = vp.replace(E_b_max=check_number(battery_MJ, "pos", "battery_MJ", VehicleError) * 1e6)
+        mj = check_number(battery_MJ, "pos", "battery_MJ", VehicleError)
+        vp = vp.replace(E_b_max=check_number(mj * 1e6, "capacity", f"battery_MJ ({mj:g} MJ)",
+                                             VehicleError))
     if initial_soc is not None:
         vp = vp.replace(soc0=check_number(initial_soc, "unit", "initial_soc", VehicleError))
     return vp

@@ -121,6 +121,11 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("driving", "cruise_speed_km_h", 1.0, "must be >= 1.8 km/h"),
         ("battery", "loss_coefficient_per_W", 0.0, "must be >= 1e-12"),
         ("battery", "loss_coefficient_per_W", 1e-320, "must be >= 1e-12"),
+        # units mixed up: a battery in kWh, a heating value in MJ/kg, a density in kg/m^3
+        ("battery", "capacity_J", 100.0, "must be from 1e4 to 1e11 J"),
+        ("battery", "capacity_J", 1e30, "must be from 1e4 to 1e11 J"),
+        ("fuel", "lower_heating_value_J_per_kg", 42.8, "must be from 1e6 to 1e9 J/kg"),
+        ("fuel", "density_kg_per_l", 832.0, "must be from 0.01 to 10 kg/l"),
     ],
 )
 def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
@@ -201,6 +206,9 @@ def test_overrides_and_replace():
         with pytest.raises(VehicleError, match="mass_kg"):
             with_overrides(vp, mass_kg=bad)
         with pytest.raises(VehicleError, match="battery_MJ"):
+            with_overrides(vp, battery_MJ=bad)
+    for bad in (1e-3, 1e6):  # 1 kJ, 1 TJ: the battery's plausible range, in J
+        with pytest.raises(VehicleError, match=r"^battery_MJ \(.* MJ\): must be from 1e4"):
             with_overrides(vp, battery_MJ=bad)
     with pytest.raises(VehicleError, match="unknown vehicle field"):
         vp.replace(weight=1.0)
