@@ -253,8 +253,8 @@ def _pb_of_pbi(vp, P_bi):
     """Terminal power P_b with internal power P_bi (inverse of eq. 7, the physical root),
     P_b = 2 P_bi / (1 + sqrt(1 + 4 beta P_bi)): the root (sqrt(1 + 4 beta P_bi) - 1) / (2 beta)
     without its cancellation, which in float32 lost power for a small beta (at 100 kW 3e-4 of
-    it with beta 1e-9 / W, 40 % with 1e-12). P_bi below its least value -1 / (4 beta) gives that value's root,
-    -1 / (2 beta)."""
+    it with beta 1e-9 / W, 40 % with 1e-12). P_bi below its least value -1 / (4 beta) gives
+    that value's root, -1 / (2 beta)."""
     P_bi = jnp.maximum(P_bi, -0.25 / vp.beta)
     return 2.0 * P_bi / (1.0 + jnp.sqrt(jnp.maximum(1.0 + 4.0 * vp.beta * P_bi, 0.0)))
 

@@ -1030,10 +1030,12 @@ def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
     """Options with `same_open_time` decided from the (concrete) vehicles when it is None;
     ValueError where it is True and a vehicle's dt_M and dt_G differ (Level 1's fast
     relaxation, which it selects, holds only for equal open times)."""
+    if opts.same_open_time is False:
+        return opts
     same = bool(np.all(np.asarray(vehicles.dt_M) == np.asarray(vehicles.dt_G)))
     if opts.same_open_time is None:
         opts = opts._replace(same_open_time=same)
-    elif opts.same_open_time and not same:
+    elif not same:
         raise ValueError("same_open_time=true: the vehicles' mode and gear open times differ "
                          "(switching.mode_open_s, gear_open_s); leave the option out, and it "
                          "is decided from the vehicles")
