@@ -1758,23 +1758,22 @@ def ref_plant(vp: VehicleParams, track, commands, n_steps: int, dt: float, mode0
         served1 = s_stop if arrived else served
         s1 = s_stop if arrived else s + ds
         finished = s1 >= length - 1e-3 and not dwell1 > 0.5 * dt
+        # the moment the trip ends; the step that ends it counts up to there: the share of its
+        # time where a stop at the end held it, of its distance where it reaches the end
+        # moving (there at its speed)
+        share = 1.0
         if standing:  # at the end, a stop's time left
             t_fin = k * dt + dwell
+            share = dwell / dt if finished else 1.0
         elif arrived:
             t_fin = k * dt + t_in + t_stop
         else:  # the end within the step, at its constant acceleration
             d_end = min(max(length - s, 0.0), ds)
             v_d = math.sqrt(max(v * v + 2.0 * (v1 - v) / dt * d_end, 0.0))
             t_fin = k * dt + (min(2.0 * d_end / (v + v_d), dt) if v + v_d > 0 else 0.0)
-        # the step that ends the trip counts up to its end: the share of its distance up to
-        # the end where it reaches it moving (there at its speed), of its time where a stop
-        # at the end held it
-        share = 1.0
-        if finished and standing:
-            share = dwell / dt
-        elif finished and not arrived:
-            share = d_end / ds if ds > 0 else 1.0
-            v1, s1 = v_d, s + d_end
+            if finished:
+                share = d_end / ds if ds > 0 else 1.0
+                v1, s1 = v_d, s + d_end
         E_b1 = min(max(E_b - (P_b + f.beta * P_b * P_b) * dt * share - E_sync_b, 0.0),
                    f.E_b_max)
 

@@ -437,7 +437,7 @@ def load_config(path: str | Path) -> SweepConfig:
     for key, spec in grid_doc.items():
         where = f"{src}: grid.{key}"
         try:
-            field, _, kind = grid_field(key)
+            field, scale, kind = grid_field(key)
         except KeyError:
             raise SweepError(f"{where}: unknown grid key {key!r} (known: "
                              f"{', '.join(GRID_KEYS)}, or a vehicle field: "
@@ -455,7 +455,7 @@ def load_config(path: str | Path) -> SweepConfig:
         vals = tuple(_check_value(x, kind, f"{where}[{i}]") for i, x in enumerate(values))
         if len(set(vals)) != len(vals):
             raise SweepError(f"{where}: a value is listed twice ({list(vals)})")
-        _check_precision(vals, grid_field(key)[1], precision, where)
+        _check_precision(vals, scale, precision, where)
         grid[key] = vals
     n_points = math.prod(len(v) for v in grid.values())
     if n_points > GRID_MAX:  # before any point is made
