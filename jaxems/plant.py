@@ -179,6 +179,12 @@ class Trace(NamedTuple):
     P_brake: Any
     lam: Any
     v_ref: Any
+    E_sync_b: Any  # synchronisation energy of the step's switch (J) from the battery
+    E_sync_f: Any  # ... from fuel (the powers above are the step's mean without it)
+    # what the totals count of the step's powers, in s: dt; at the trip's end dt times its
+    # share (of its distance where it reaches the end moving, of its time where a final stop
+    # holds the truck); 0 after the trip
+    span: Any
 
 
 class PlantResult(NamedTuple):
@@ -732,7 +738,9 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
     )
     tr = Trace(t=k * dt, s=s0, v=v0, E_b=st.E_b, mode=mode, gear=gear, P_d=P_wheel * live,
                P_e=P_e * live, P_m=P_m * live, P_b=P_b * live, P_f=(P_f + P_idle) * live,
-               P_brake=P_brake * live, lam=lam, v_ref=v_ref_here)
+               P_brake=P_brake * live, lam=lam, v_ref=v_ref_here,
+               E_sync_b=jnp.where(live, E_sync_b, z), E_sync_f=jnp.where(live, E_sync_f, z),
+               span=d(jnp.ones_like(P_f)))
     return (new, cparams, cstate), tr
 
 

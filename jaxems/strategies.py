@@ -980,14 +980,20 @@ class Result:
         the trip's end), as named columns with their units: at the step's start t_s, s_m,
         v_m_s, v_ref_m_s (Level 3's speed at that position) and E_b_J; over the step its mode
         (`powersplit.MODE_SHORT`: Mc, Me, Mm, Mo), gear (1 = first), the step's mean powers (W;
-        P_d_W at the wheels, service brakes included; P_f_W the fuel power, idling included)
-        and lambda_b (the costate the controller applied). The trip's end is in `as_dict`
-        (trip_time_s, delta_Eb_J)."""
+        P_d_W at the wheels, service brakes included; P_f_W the fuel power, idling included),
+        lambda_b (the costate the controller applied), counted_s (what the run's totals count
+        of the step, in s: dt, at the trip's end the share of the step up to the route's end)
+        and the synchronisation energy of the step's switch (J) from the battery and from fuel,
+        E_sync_b_J and E_sync_f_J, which the mean powers leave out: fuel_J is the sum of
+        P_f_W counted_s + E_sync_f_J, and each step's E_b_J the last one's less its internal
+        battery power (P_b_W + beta P_b_W^2) over counted_s and E_sync_b_J, within the
+        battery's limits. The trip's end is in `as_dict` (trip_time_s, delta_Eb_J)."""
         tr = self.trip_trace()
         return {"t_s": tr.t, "s_m": tr.s, "v_m_s": tr.v, "v_ref_m_s": tr.v_ref, "E_b_J": tr.E_b,
                 "mode": np.asarray(ps.MODE_SHORT)[tr.mode], "gear": tr.gear + 1,
                 "P_d_W": tr.P_d, "P_e_W": tr.P_e, "P_m_W": tr.P_m, "P_b_W": tr.P_b,
-                "P_f_W": tr.P_f, "P_brake_W": tr.P_brake, "lambda_b": tr.lam}
+                "P_f_W": tr.P_f, "P_brake_W": tr.P_brake, "lambda_b": tr.lam,
+                "counted_s": tr.span, "E_sync_b_J": tr.E_sync_b, "E_sync_f_J": tr.E_sync_f}
 
 
 

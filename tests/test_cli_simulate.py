@@ -82,7 +82,8 @@ def test_simulate_battery_override_and_table(capsys):
 
 
 TRACE_HEADER = ["t_s", "s_m", "v_m_s", "v_ref_m_s", "E_b_J", "mode", "gear", "P_d_W", "P_e_W",
-                "P_m_W", "P_b_W", "P_f_W", "P_brake_W", "lambda_b"]
+                "P_m_W", "P_b_W", "P_f_W", "P_brake_W", "lambda_b", "counted_s", "E_sync_b_J",
+                "E_sync_f_J"]
 
 
 def test_simulate_writes_its_time_series_and_plot(capsys, tmp_path):
@@ -112,10 +113,13 @@ def test_simulate_writes_its_time_series_and_plot(capsys, tmp_path):
     assert set(cols["mode"]) <= {"Me", "Mo"} and "Me" in cols["mode"]
     assert np.all((num["gear"] >= 1) & (num["gear"] <= 12)) and len(set(cols["gear"])) > 1
     assert np.all(num["E_b_J"] == 2.0e6) and np.all(num["P_b_W"] == 0) and np.all(num["P_m_W"] == 0)
-    # the fuel power over the steps is the run's fuel, but for the synchronisation energy the
-    # engine supplies at switches, which only the run's total counts
-    fuel_steps = float(np.sum(num["P_f_W"]) * 1.0)
-    assert 0.99 * d["fuel_J"] <= fuel_steps <= d["fuel_J"]
+    # the fuel power over the time each step counts and the synchronisation energy the engine
+    # supplies at switches are the run's fuel (to the CSV's 10 digits); the short track ends
+    # at speed, and its last step counts up to the route's end
+    assert np.all(num["counted_s"][:-1] == 1.0) and 0.0 < num["counted_s"][-1] < 1.0
+    assert np.sum(num["E_sync_f_J"]) > 0 and np.all(num["E_sync_b_J"] == 0)
+    fuel_steps = float(np.sum(num["P_f_W"] * num["counted_s"]) + np.sum(num["E_sync_f_J"]))
+    assert fuel_steps == pytest.approx(d["fuel_J"], rel=1e-8)
     # the same columns as the Python API's, to the CSV's 10 digits
     api = simulate("short_track", strategy="conventional", mass_kg=25000.0).trace_columns()
     assert list(api) == TRACE_HEADER

@@ -674,7 +674,25 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
         assert float(getattr(t, name)) == tot[name], name
     assert float(t.trip_time) == pytest.approx(tot["trip_time"], rel=1e-9, abs=1e-6)
     assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0)
+    assert_trace_closes(vp, res)
     return res
+
+
+def assert_trace_closes(vp, res):
+    """The trace accounts for every joule of the totals: the fuel is its fuel power over the
+    time each step counts (`Trace.span`) plus the synchronisation energy drawn from fuel, and each step's
+    battery energy follows from the last by its internal power over that time and the
+    synchronisation energy drawn from the battery, within the battery's limits."""
+    tr, t = res.trace, res.final.tot
+    span, sync_b, sync_f = (np.asarray(x) for x in (tr.span, tr.E_sync_b, tr.E_sync_f))
+    fuel = np.sum(np.asarray(tr.P_f) * span) + np.sum(sync_f)
+    assert fuel == pytest.approx(float(t.fuel), rel=1e-10, abs=1e-3)
+    assert np.sum(sync_b + sync_f) == pytest.approx(float(t.loss_sync), rel=1e-10, abs=1e-3)
+    P_b = np.asarray(tr.P_b)
+    E = np.append(np.asarray(tr.E_b), float(res.final.E_b))
+    after = np.clip(E[:-1] - (P_b + float(vp.beta) * P_b * P_b) * span - sync_b, 0.0,
+                    float(vp.E_b_max))
+    np.testing.assert_allclose(E[1:], after, rtol=1e-12, atol=1e-6)
 
 
 @settings(max_examples=8, deadline=None)

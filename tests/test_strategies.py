@@ -43,6 +43,25 @@ def corrected(r):
     return r["fuel_corrected_J"]
 
 
+def test_every_runs_time_series_accounts_for_its_totals(runs):
+    """`trace_columns` of every strategy closes on the run's totals: the fuel power over what
+    each step counts plus the synchronisation energy from fuel is fuel_J, and each step's E_b
+    follows from the step before by its battery power and the synchronisation energy the
+    battery gave, so that the rows' own sum gives delta_Eb_J."""
+    beta, E_max = float(VP.beta), float(VP.E_b_max)
+    for name, r in runs.items():
+        c, d = r.trace_columns(), r.as_dict()
+        fuel = np.sum(c["P_f_W"] * c["counted_s"]) + np.sum(c["E_sync_f_J"])
+        assert fuel == pytest.approx(d["fuel_J"], rel=1e-10), name
+        E = np.append(c["E_b_J"], c["E_b_J"][0] + d["delta_Eb_J"])
+        P_b = c["P_b_W"]
+        after = np.clip(E[:-1] - (P_b + beta * P_b * P_b) * c["counted_s"] - c["E_sync_b_J"],
+                        0.0, E_max)
+        np.testing.assert_allclose(E[1:], after, rtol=1e-12, atol=1e-6, err_msg=name)
+        if name in HYBRID:  # the hybrids start the engine from the battery
+            assert np.sum(c["E_sync_b_J"]) > 0, name
+
+
 def test_every_run_finishes_with_the_json_fields(runs):
     for name, r in runs.items():
         d = r.as_dict()
