@@ -112,6 +112,10 @@ GRID_KEYS: dict[str, tuple[str, float, str]] = {
     "engine_efficiency": ("eta_e", 1.0, "frac"),
     "initial_soc": ("soc0", 1.0, "unit"),
 }
+# The VehicleParams fields that a user key sets, by field: the key (a raw name for them would
+# leave the results' mass_kg and battery_MJ columns, which the report reads, at the vehicle
+# file's values)
+USER_KEY = {field: key for key, (field, _, _) in GRID_KEYS.items()}
 # Checks of the raw VehicleParams fields (by their own names, in SI), from the vehicle file
 # schema; the cruise speed's rule reads km/h, the file's unit: a raw v_cruise (m/s) is checked
 # positive here and against the rule by `check_vehicle`, which every grid point's vehicle meets
@@ -185,6 +189,9 @@ class SweepConfig:
             "vehicle": {"name": Path(self.vehicle_spec).stem, "sha256": self.vehicle_sha256},
             "strategies": list(self.strategies),
             "grid": {k: list(v) for k, v in self.grid.items()},
+            # the keys' order sets the points' order (first key slowest), which the chunks'
+            # grid_index reads; the fingerprint sorts the table's keys
+            "grid_order": list(self.grid),
             "batch_size": self.batch_size,
             "dt_s": self.dt,
             "ds_m": self.ds,
@@ -436,6 +443,10 @@ def load_config(path: str | Path) -> SweepConfig:
     fields_seen: dict[str, str] = {}
     for key, spec in grid_doc.items():
         where = f"{src}: grid.{key}"
+        if key in USER_KEY:
+            raise SweepError(f"{where}: the vehicle's {key} is set by its grid key in user "
+                             f"units, {USER_KEY[key]} (the results' columns and the report read "
+                             f"it); use {USER_KEY[key]}")
         try:
             field, scale, kind = grid_field(key)
         except KeyError:
@@ -445,10 +456,7 @@ def load_config(path: str | Path) -> SweepConfig:
         if np.ndim(getattr(vehicle, field)) != 0:
             raise SweepError(f"{where}: {field} is a curve, not a number; it cannot be a grid "
                              f"parameter")
-        if field in fields_seen:
-            raise SweepError(f"{where}: sets the same vehicle field ({field}) as "
-                             f"grid.{fields_seen[field]}")
-        fields_seen[field] = key
+        fields_seen[field] = key  # one key a field: a raw name of a user key's is refused
         values = _grid_values(spec, where)
         if not values:
             raise SweepError(f"{where}: empty list of values")
@@ -754,6 +762,9 @@ def _describe_change(old: dict, new: dict) -> str:
             parts.append(f"routes ({'; '.join(bits) or 'order changed'})")
         elif k == "code":
             parts.append("code (computed by another version of jaxems)")
+        elif k == "grid_order" and old.get("grid") == new.get("grid"):
+            parts.append("the grid's key order (the first key varies slowest: a grid point's "
+                         "index names another point)")
         else:
             parts.append(k)
     return ", ".join(parts)

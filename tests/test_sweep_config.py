@@ -56,7 +56,8 @@ def test_good_file_parses(tmp_path):
         (GOOD.replace("[2, 4]", "[2, -4]"), r"grid\.battery_MJ\[1\]: must be > 0"),
         (GOOD.replace("[2, 4]", "[2, 2]"), r"grid\.battery_MJ: a value is listed twice"),
         (GOOD.replace("[2, 4]", "['two']"), r"grid\.battery_MJ\[0\]: expected a number"),
-        (GOOD + "E_b_max = [1e6]\n", r"grid\.E_b_max: sets the same vehicle field"),
+        (GOOD + "E_b_max = [1e6]\n", r"grid\.E_b_max: the vehicle's E_b_max is set by its "
+                                      r"grid key in user units, battery_MJ"),
         (GOOD + "te_max = [1, 2]\n", r"grid\.te_max: te_max is a curve"),
         (GOOD + "initial_soc = [1.5]\n", r"grid\.initial_soc\[0\]: must be in \[0, 1\]"),
         (GOOD.replace('"short_track"', '"no_such_route"'),
@@ -89,6 +90,14 @@ def test_good_file_parses(tmp_path):
         # the vehicle file's rules: a loss coefficient that ran to NaN fuel, a motor halved
         (GOOD + "beta_per_W = [1e-50]\n", r"grid\.beta_per_W\[0\]: must be >= 1e-12"),
         (GOOD + "has_motor = [0.5]\n", r"grid\.has_motor\[0\]: must be 0 or 1"),
+        # a field a user key sets, by its raw name: the results' mass_kg and battery_MJ columns
+        # kept the vehicle file's values, and the report summed four vehicles in one cell
+        (GOOD.replace("mass_kg", "mass"),
+         r"s\.toml: grid\.mass: the vehicle's mass is set by its grid key in user units, "
+         r"mass_kg .*; use mass_kg"),
+        (GOOD.replace("battery_MJ = [2, 4]", "E_b_max = [2e6, 4e6]"),
+         r"grid\.E_b_max: .* battery_MJ"),
+        (GOOD + "soc0 = [0.5]\n", r"grid\.soc0: .* initial_soc"),
         # a raw field in SI (m/s) against the file's rule in km/h, by check_vehicle
         (GOOD + "v_cruise = [0.3]\n", r"grid: v_cruise\[0\]: must be >= 1\.8 km/h"),
         # ds_m was blamed on the route file ("short_track.csv: ds must be ...")
@@ -213,6 +222,17 @@ def test_changed_sweep_in_existing_directory_is_refused(tmp_path):
         sw.prepare_dir(changed, out)
     with pytest.raises(sw.SweepError, match="nothing to resume"):
         sw.prepare_dir(changed, tmp_path / "fresh", resume=True)
+    # the grid's keys swapped: the same points in another order, so that a chunk's grid_index
+    # names other points (a resume mixed the two orders, and the savings compared a baseline
+    # at 20 t / 4 MJ with a conventional truck at 30 t / 2 MJ)
+    swapped = GOOD.replace("mass_kg = [20000, 30000, 40000]\nbattery_MJ = [2, 4]",
+                           "battery_MJ = [2, 4]\nmass_kg = [20000, 30000, 40000]")
+    assert swapped != GOOD
+    reordered = sw.load_config(write(tmp_path, swapped))
+    assert reordered.grid == sw.load_config(write(tmp_path, GOOD, "a.toml")).grid
+    with pytest.raises(sw.SweepError, match=r"different sweep \(changed: the grid's key order "
+                                            r"\(the first key varies slowest"):
+        sw.prepare_dir(reordered, out)
 
 
 def test_a_run_killed_while_it_makes_its_directory_runs_again(tmp_path, monkeypatch):
