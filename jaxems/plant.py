@@ -184,7 +184,7 @@ class Trace(NamedTuple):
     # what the totals count of the step's powers, in s: dt; at the trip's end dt times its
     # share (of its distance where it reaches the end moving, of its time where a final stop
     # holds the truck); 0 after the trip
-    span: Any
+    counted: Any
 
 
 class PlantResult(NamedTuple):
@@ -740,7 +740,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
                P_e=P_e * live, P_m=P_m * live, P_b=P_b * live, P_f=(P_f + P_idle) * live,
                P_brake=P_brake * live, lam=lam, v_ref=v_ref_here,
                E_sync_b=jnp.where(live, E_sync_b, z), E_sync_f=jnp.where(live, E_sync_f, z),
-               span=d(jnp.ones_like(P_f)))
+               counted=d(jnp.ones_like(P_f)))
     return (new, cparams, cstate), tr
 
 

@@ -993,7 +993,7 @@ class Result:
                 "mode": np.asarray(ps.MODE_SHORT)[tr.mode], "gear": tr.gear + 1,
                 "P_d_W": tr.P_d, "P_e_W": tr.P_e, "P_m_W": tr.P_m, "P_b_W": tr.P_b,
                 "P_f_W": tr.P_f, "P_brake_W": tr.P_brake, "lambda_b": tr.lam,
-                "counted_s": tr.span, "E_sync_b_J": tr.E_sync_b, "E_sync_f_J": tr.E_sync_f}
+                "counted_s": tr.counted, "E_sync_b_J": tr.E_sync_b, "E_sync_f_J": tr.E_sync_f}
 
 
 

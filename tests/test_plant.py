@@ -680,11 +680,11 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
 
 def assert_trace_closes(vp, res):
     """The trace accounts for every joule of the totals: the fuel is its fuel power over the
-    time each step counts (`Trace.span`) plus the synchronisation energy drawn from fuel, and
+    time each step counts (`Trace.counted`) plus the synchronisation energy drawn from fuel, and
     each step's battery energy follows from the last by its internal power over that time and
     the synchronisation energy drawn from the battery, within the battery's limits."""
     tr, t = res.trace, res.final.tot
-    span, sync_b, sync_f = (np.asarray(x) for x in (tr.span, tr.E_sync_b, tr.E_sync_f))
+    span, sync_b, sync_f = (np.asarray(x) for x in (tr.counted, tr.E_sync_b, tr.E_sync_f))
     fuel = np.sum(np.asarray(tr.P_f) * span) + np.sum(sync_f)
     assert fuel == pytest.approx(float(t.fuel), rel=1e-10, abs=1e-3)
     assert np.sum(sync_b + sync_f) == pytest.approx(float(t.loss_sync), rel=1e-10, abs=1e-3)
