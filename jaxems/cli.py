@@ -513,7 +513,8 @@ def register_compare(sub) -> None:
                         "also multilevel-mpc, dp-bound, multilevel-eco)")
     p.add_argument("--traces", metavar="DIR",
                    help="write each strategy's time series and traces to DIR/STRATEGY.csv and "
-                        ".png (as simulate --csv and --plot); DIR is made if missing")
+                        ".png (as simulate --csv and --plot); DIR is made if missing, in an "
+                        "existing directory")
     p.set_defaults(func=cmd_compare)
 
 

@@ -817,7 +817,10 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     if finished_chunks(out) or (out / RESULTS_FILE).exists():
         raise SweepError(f"{out}: holds sweep results without {CONFIG_FILE}; refusing to mix "
                          f"them; use another --out directory")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as e:  # past `check_out_dir` (root writes where no directory can be made)
+        raise SweepError(f"--out: cannot make {out} ({e.strerror or e})") from None
     atomic_write_bytes(out / SOURCE_COPY, cfg.text.encode("utf-8"))
     meta = {"fingerprint": cfg.fingerprint(), "canonical": cfg.canonical(),
             "source": str(cfg.source),

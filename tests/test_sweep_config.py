@@ -235,6 +235,20 @@ def test_changed_sweep_in_existing_directory_is_refused(tmp_path):
         sw.prepare_dir(reordered, out)
 
 
+def test_an_out_directory_that_cannot_be_made_names_the_flag(tmp_path, monkeypatch):
+    """Where `check_out_dir` passes and the directory still cannot be made (root, under /proc:
+    "[Errno 2] No such file or directory: '/proc/x'" named no flag), the error names --out."""
+    cfg = sw.load_config(write(tmp_path, GOOD))
+
+    def refused(self, *a, **k):
+        raise FileNotFoundError(2, "No such file or directory", str(self))
+
+    monkeypatch.setattr(sw.Path, "mkdir", refused)
+    with pytest.raises(sw.SweepError, match=r"--out: cannot make .*out \(No such file or "
+                                            r"directory\)"):
+        sw.prepare_dir(cfg, tmp_path / "out")
+
+
 def test_a_run_killed_while_it_makes_its_directory_runs_again(tmp_path, monkeypatch):
     """chunks/ was made before sweep.json: a run killed in between left a directory that a
     rerun refused ("holds sweep results without sweep.json") and --resume did not know."""
