@@ -6,7 +6,7 @@ Writes into DIR (a sweep results directory, see `jaxems.sweep`):
 
 - ``saving_heatmap_<route>.png``: saving (%) over mass x battery size, one panel per strategy,
   for each route;
-- ``saving_heatmap_all_routes.png``: the fleet saving over mass x battery size, from the fuel
+- ``fleet_saving_heatmap.png``: the fleet saving over mass x battery size, from the fuel
   summed over all routes (every route counts with its fuel, i.e. its length and load);
 - ``fuel_per_strategy.png``: corrected fuel (l/100 km) per strategy per route, mean over the
   grid, with the range over the grid as error bars;
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import base64
 import html
-import re
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,8 @@ from pathlib import Path
 import numpy as np
 
 SUFFICIENT_PP = 0.5  # percentage points: "sufficient" battery = within this of the best saving
+TIE_PP = 1e-9  # percentage points: savings this close are the same (the best battery's tie)
+FLEET_HEATMAP = "fleet_saving_heatmap.png"  # its own name: a route may be named all_routes
 MAX_FULL_TABLE = 2000  # rows: the full results table goes into the page up to this size
 MAX_MISSED = 50  # rows: the largest charge misses listed in the page
 CHARGE_SHARE = 0.01  # a run misses the charge beyond this share of its battery (|delta_Eb|)
@@ -62,8 +63,9 @@ def save_png(fig, path, dpi: int = 100) -> Path:
     return Path(path)
 
 
-def _safe(name: str) -> str:
-    return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+def _text(name: str) -> str:
+    """A name as plain text in a figure (matplotlib reads $...$ as mathematics)."""
+    return name.replace("$", r"\$")
 
 
 def reference_strategy(df) -> str | None:
@@ -132,8 +134,10 @@ def best_battery(fleet) -> object:
         if g["saving_pct"].isna().any():
             continue
         g = g.sort_values("battery_MJ")
-        i = int(np.argmax(g["saving_pct"].to_numpy()))
-        best = g.iloc[i]
+        x = g["saving_pct"].to_numpy()
+        # the smallest battery of the largest saving: runs that take the same decisions with
+        # two batteries differ in their savings' last bits
+        best = g.iloc[int(np.argmax(x >= np.max(x) - TIE_PP))]
         suff = g[g["saving_pct"] >= best["saving_pct"] - SUFFICIENT_PP].iloc[0]
         rows.append({"strategy": s, "mass_kg": mass, "best_battery_MJ": best["battery_MJ"],
                      "best_saving_pct": best["saving_pct"],
@@ -184,19 +188,24 @@ def _heatmap_figure(path: Path, panels: list[tuple[str, object]], suptitle: str)
 
 
 def _pivot(df, col: str):
-    return df.pivot_table(index="mass_kg", columns="battery_MJ", values=col, aggfunc="mean")
+    """mass x battery table of col (mean over the other grid keys); a mass or battery whose
+    cells are all blank (runs that did not finish) stays, blank."""
+    return df.pivot_table(index="mass_kg", columns="battery_MJ", values=col, aggfunc="mean",
+                          dropna=False)
 
 
 def plot_route_heatmaps(out: Path, df, ref: str) -> list[Path]:
     """One PNG per route: saving vs `ref` over mass x battery, a panel per other strategy."""
+    from .sweep import safe_name
+
     paths = []
     col = f"saving_vs_{ref}_pct"
     others = [s for s in _strategies(df) if s != ref]
     for r in _routes(df):
         d = df[df["route"] == r]
         panels = [(f"{s} vs {ref}", _pivot(d[d["strategy"] == s], col)) for s in others]
-        p = out / f"saving_heatmap_{_safe(r)}.png"
-        if _heatmap_figure(p, panels, f"{r}: fuel saving (%) against {ref}"):
+        p = out / f"saving_heatmap_{safe_name(r)}.png"
+        if _heatmap_figure(p, panels, f"{_text(r)}: fuel saving (%) against {ref}"):
             paths.append(p)
     return paths
 
@@ -208,9 +217,8 @@ def plot_fleet_heatmap(out: Path, fleet, ref: str) -> Path | None:
         if s == ref:
             continue
         d = fleet[fleet["strategy"] == s]
-        panels.append((f"{s} vs {ref}", d.pivot_table(index="mass_kg", columns="battery_MJ",
-                                                      values="saving_pct", aggfunc="mean")))
-    p = out / "saving_heatmap_all_routes.png"
+        panels.append((f"{s} vs {ref}", _pivot(d, "saving_pct")))
+    p = out / FLEET_HEATMAP
     ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref} "
                               f"(blank: a route did not finish)")
     return p if ok else None
@@ -239,7 +247,8 @@ def plot_fuel(out: Path, df) -> Path | None:
         ax.bar(xs, mean, w, label=s, color=f"C{j}")
         ax.errorbar(xs, mean, yerr=[mean - lo, hi - mean], fmt="none", ecolor="0.2", lw=0.8,
                     capsize=2)
-    ax.set_xticks(range(len(routes)), routes, rotation=20 if len(routes) > 4 else 0)
+    ax.set_xticks(range(len(routes)), [_text(r) for r in routes],
+                  rotation=20 if len(routes) > 4 else 0)
     ax.set_ylabel("fuel, corrected (l/100 km)")
     ax.set_title("fuel per strategy and route (mean over the grid; bars: range over the grid)",
                  fontsize=9)
@@ -266,7 +275,7 @@ def plot_distribution(out: Path, df, ref: str) -> Path | None:
             y = df[(df["strategy"] == s) & (df["route"] == r)][col].dropna().to_numpy()
             if y.size:
                 ax.scatter(j + 1 + rng.uniform(-0.15, 0.15, y.size), y, s=8, alpha=0.5,
-                           color=f"C{k % 10}", label=r if j == 0 else None)
+                           color=f"C{k % 10}", label=_text(r) if j == 0 else None)
     ax.axhline(0, color="0.5", lw=0.6)
     ax.set_ylabel(f"saving against {ref} (%)")
     ax.set_title("distribution of savings over routes (points: route x grid point)", fontsize=9)

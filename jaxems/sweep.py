@@ -319,16 +319,20 @@ def _resolve_routes(entries: Any, base: Path, where: str, ds: float) -> tuple[Ro
                 raise SweepError(f"{where}: routes: {e!r}: no such route file (looked at {pat})")
             paths.append(p)
     out: list[RouteEntry] = []
-    seen: dict[str, Path] = {}
+    seen: dict[str, Path] = {}  # by the name in file names: "x y" and "x_y" would share them
     for p in paths:
         p = p.resolve()
         name = route_name(p)
-        if name in seen:
-            if seen[name] == p:
+        key = safe_name(name)
+        if key in seen:
+            if seen[key] == p:
                 continue  # listed twice (e.g. a name and a glob): once is enough
-            raise SweepError(f"{where}: routes: two route files named {name!r}: {seen[name]} and "
-                             f"{p}; rename one")
-        seen[name] = p
+            raise SweepError(f"{where}: routes: two route files named {name!r} or alike (as "
+                             f"{key!r} in file names): {seen[key]} and {p}; rename one")
+        if len(key) > NAME_MAX:
+            raise SweepError(f"{where}: routes: {p}: a name of {len(key)} characters; at most "
+                             f"{NAME_MAX} (the results' file names carry it): rename the file")
+        seen[key] = p
         try:
             route = load_route(p, ds=ds)
         except RouteError as e:
@@ -542,8 +546,13 @@ class Chunk:
     n_real: int  # the first n_real entries are real
 
 
-def _safe(name: str) -> str:
+def safe_name(name: str) -> str:
+    """A route's name as it stands in file names (chunk files, report figures)."""
     return re.sub(r"[^A-Za-z0-9_.-]+", "_", name)
+
+
+NAME_MAX = 100  # characters of a route's file name: a chunk file adds about 60, a file system
+# allows 255
 
 
 def plan_chunks(cfg: SweepConfig) -> list[Chunk]:
@@ -561,7 +570,7 @@ def plan_chunks(cfg: SweepConfig) -> list[Chunk]:
                 n_real = len(idx)
                 idx += [idx[-1]] * (B - n_real)
                 out.append(Chunk(
-                    id=f"r{ri:04d}-{_safe(r.name)}--{s}--c{c:05d}", route_index=ri, strategy=s,
+                    id=f"r{ri:04d}-{safe_name(r.name)}--{s}--c{c:05d}", route_index=ri, strategy=s,
                     index=c, grid_index=tuple(idx), n_real=n_real,
                 ))
     return out
@@ -1038,7 +1047,8 @@ def load_sweep(directory: str | Path):
     integer, `strategies.level2_names`; -1 where the strategy has none), wall_s (wall time per
     configuration), chunk (its chunk id),
     fuel_corrected_J, saving_vs_conventional_pct and saving_vs_baseline_pct (see `add_savings`).
-    Reads ``results.parquet`` when it is up to date, otherwise merges the finished chunks (an
+    Reads ``results.parquet`` when it is up to date (no chunk newer, the same chunks: a chunk
+    file deleted since was still reported), otherwise merges the finished chunks (an
     unfinished sweep gives the rows computed so far).
     """
     import pandas as pd
@@ -1051,7 +1061,9 @@ def load_sweep(directory: str | Path):
     if res.exists():
         newest = max((p.stat().st_mtime for p in chunks), default=0.0)
         if res.stat().st_mtime >= newest:
-            return pd.read_parquet(res)
+            df = pd.read_parquet(res)
+            if set(df["chunk"]) == {p.stem for p in chunks}:
+                return df
     return assemble(d)
 
 

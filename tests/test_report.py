@@ -50,7 +50,7 @@ def synthetic(seed=0, drop=()):
 
 def write_dir(tmp_path, df):
     """A sweep directory holding df as chunk files and a sweep.json for its grid."""
-    canon = {"format": 1, "routes": [{"name": r, "sha256": "0"} for r in ROUTES],
+    canon = {"format": 1, "routes": [{"name": r, "sha256": "0"} for r in dict.fromkeys(df.route)],
              "strategies": list(STRATS),
              "grid": {"mass_kg": list(MASSES), "battery_MJ": list(BATTERIES)}}
     d = tmp_path / "sweep"
@@ -142,7 +142,7 @@ def test_report_page_is_self_contained_with_every_figure(tmp_path, capsys):
     page = d / "report.html"
     assert capsys.readouterr().out.strip() == str(page)
     text = page.read_text(encoding="utf-8")
-    pngs = {"saving_heatmap_all_routes.png", "saving_heatmap_hilly.png",
+    pngs = {rp.FLEET_HEATMAP, "saving_heatmap_hilly.png",
             "saving_heatmap_flat.png", "fuel_per_strategy.png", "saving_distribution.png",
             "best_battery.png"}
     assert {p.name for p in d.glob("*.png")} == pngs
@@ -221,9 +221,55 @@ def test_report_of_an_unfinished_sweep_and_without_references(tmp_path):
     text = page.read_text(encoding="utf-8")
     assert "Unfinished sweep" in text
     assert (d / "fuel_per_strategy.png").exists()
-    assert not (d / "saving_heatmap_all_routes.png").exists()
+    assert not (d / rp.FLEET_HEATMAP).exists()
 
 
 def test_report_of_a_missing_directory_is_an_error(tmp_path, capsys):
     assert rp.main([str(tmp_path / "nothing")]) == 1
     assert "not a jaxems sweep directory" in capsys.readouterr().err
+
+
+def test_load_sweep_merges_again_where_a_chunk_file_is_gone(tmp_path):
+    """results.parquet is the merged chunks while they are the same: a chunk file deleted
+    since (to recompute it) was still reported ("12 of 12 configurations")."""
+    d = write_dir(tmp_path, synthetic())
+    sw.load_sweep(d).to_parquet(d / sw.RESULTS_FILE)  # newer than every chunk
+    assert len(sw.load_sweep(d)) == len(synthetic())
+    (d / "chunks" / "flat-baseline.parquet").unlink()
+    got = sw.load_sweep(d)
+    assert len(got) == len(synthetic()) - len(MASSES) * len(BATTERIES)
+    assert not ((got.route == "flat") & (got.strategy == "baseline")).any()
+
+
+def test_route_names_are_text_in_the_figures_and_the_fleet_keeps_its_own(tmp_path):
+    """A route named all_routes wrote its heatmap over the fleet's (the same file name), and a
+    $ in a route's name made matplotlib read mathematics and fail after the sweep had run."""
+    df = synthetic(3)
+    df = df.assign(route=df.route.replace({"hilly": "all_routes", "flat": "A$_$B"}))
+    d = write_dir(tmp_path, df)
+    rp.write_report(d)
+    names = {p.name for p in d.glob("*.png")}
+    assert {rp.FLEET_HEATMAP, "saving_heatmap_all_routes.png", "saving_heatmap_A___B.png"} <= names
+    assert (d / rp.FLEET_HEATMAP).read_bytes() != (d / "saving_heatmap_all_routes.png").read_bytes()
+
+
+def test_best_battery_of_a_tie_is_the_smaller_one():
+    """Two batteries with which the runs take the same decisions give savings that differ in
+    their last bits (16.87588125207177 and ...181): the smaller battery is the best."""
+    fleet = pd.DataFrame({"strategy": "baseline", "mass_kg": 25000.0,
+                          "battery_MJ": [2.0, 4.0, 8.0],
+                          "saving_pct": [16.87588125207177, 16.87588125207181, 10.0]})
+    best = rp.best_battery(fleet)
+    assert best.best_battery_MJ.tolist() == [2.0] and best.sufficient_battery_MJ.tolist() == [2.0]
+
+
+def test_heatmap_keeps_a_mass_whose_runs_all_failed():
+    """A mass whose every cell is blank (a climb no run of 40 t finished) is a blank row, not a
+    row left out under a title that says blank means a run did not finish."""
+    df = synthetic(4)
+    ml = df[df.strategy == "multilevel"]
+    ml = ml.assign(saving_vs_conventional_pct=np.where(ml.mass_kg == 40000.0, np.nan,
+                                                       ml.saving_vs_conventional_pct))
+    tab = rp._pivot(ml, "saving_vs_conventional_pct")
+    assert list(tab.index) == list(MASSES) and tab.loc[40000.0].isna().all()
+

@@ -140,6 +140,24 @@ def test_bad_route_file_is_named(tmp_path):
         sw.load_config(write(tmp_path, text))
 
 
+def test_route_names_that_share_a_file_name_or_are_too_long_are_refused(tmp_path):
+    """Route names stand in the chunks' and the figures' file names: "x y" and "x_y" both became
+    saving_heatmap_x_y.png (one route's figure lost), and a 215-character name failed with
+    "File name too long" once the first chunk had been computed."""
+    text = "distance_m,speed_limit_km_h,gradient_pct,stop_s\n0,25,0,0\n100,25,0,0\n"
+    for name in ("x y.csv", "x_y.csv", "r" * 101 + ".csv", "r" * 100 + ".csv"):
+        (tmp_path / name).write_text(text, encoding="utf-8")
+    both = GOOD.replace('"short_track"', '"x y.csv", "x_y.csv"')
+    with pytest.raises(sw.SweepError, match=r"routes: two route files named 'x_y' or alike "
+                                            r"\(as 'x_y' in file names\)"):
+        sw.load_config(write(tmp_path, both))
+    long = GOOD.replace('"short_track"', f'"{"r" * 101}.csv"')
+    with pytest.raises(sw.SweepError, match=r"a name of 101 characters; at most 100"):
+        sw.load_config(write(tmp_path, long))
+    ok = sw.load_config(write(tmp_path, GOOD.replace('"short_track"', f'"{"r" * 100}.csv"')))
+    assert [r.name for r in ok.routes] == ["r" * 100]
+
+
 def test_bad_input_stops_before_any_computation(tmp_path, capsys):
     """The CLI exits 1 with one line naming the key; no results directory is created."""
     out = tmp_path / "out"
