@@ -64,8 +64,10 @@ def save_png(fig, path, dpi: int = 100) -> Path:
 
 
 def _text(name: str) -> str:
-    """A name as plain text in a figure (matplotlib reads $...$ as mathematics)."""
-    return name.replace("$", r"\$")
+    """A name as plain text in a figure: matplotlib reads $...$ as mathematics, and leaves a
+    legend entry whose label starts with _ out."""
+    name = name.replace("$", r"\$")
+    return " " + name if name.startswith("_") else name
 
 
 def reference_strategy(df) -> str | None:
@@ -441,7 +443,8 @@ def write_report(directory: str | Path, df=None) -> Path:
     if ref is not None:
         fleet = fleet_saving(df, ref, per_cell)
         fleet = fleet[fleet["strategy"] != ref]
-        best = best_battery(fleet)
+        # the best battery of a sweep of one battery size would be that size
+        best = best_battery(fleet) if fleet["battery_MJ"].nunique() > 1 else None
         p = plot_fleet_heatmap(out, fleet, ref)
         if p:
             figs.append((p, f"fleet saving (%) against {ref} over mass x battery, all routes"))
@@ -454,7 +457,7 @@ def write_report(directory: str | Path, df=None) -> Path:
         p = plot_distribution(out, df, ref)
         if p:
             figs.append((p, "distribution of savings over routes"))
-        p = plot_best_battery(out, best)
+        p = plot_best_battery(out, best) if best is not None else None
         if p:
             figs.append((p, "best battery size per mass"))
 

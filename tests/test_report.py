@@ -273,3 +273,15 @@ def test_heatmap_keeps_a_mass_whose_runs_all_failed():
     tab = rp._pivot(ml, "saving_vs_conventional_pct")
     assert list(tab.index) == list(MASSES) and tab.loc[40000.0].isna().all()
 
+
+def test_a_sweep_of_one_battery_size_has_no_best_battery(tmp_path):
+    """Over mass alone the best battery per mass can only be the vehicle's own: no table, no
+    figure."""
+    df = synthetic(7)
+    df = df[df.battery_MJ == 4.0]
+    d = write_dir(tmp_path, df)
+    text = rp.write_report(d).read_text(encoding="utf-8")
+    assert "best battery per mass" not in text and not (d / "best_battery.png").exists()
+    assert (d / rp.FLEET_HEATMAP).exists()
+    assert rp._text("_depot") == " _depot" and rp._text("a$b") == r"a\$b"
+
