@@ -103,7 +103,7 @@ def fleet_saving(df, ref: str, n_per_cell: int | None = None):
     strategy and the reference, and, where n_per_cell is given (the sweep's routes times its
     other grid points), all of them are there (an unfinished sweep lacks some); otherwise its
     saving is NaN (a fleet saving over a subset of the routes would not be comparable between
-    cells). Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n
+    cells), as it is where the reference's summed fuel is not positive (nothing to save). Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n
     (pairs ok), n_total (pairs the cell holds, n_per_cell where given).
     """
     import pandas as pd
@@ -118,7 +118,7 @@ def fleet_saving(df, ref: str, n_per_cell: int | None = None):
         total = len(g) if n_per_cell is None else n_per_cell
         fr = g["F_ref"].sum()
         whole = ok.all() and len(g) == total
-        sav = 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr if whole else np.nan
+        sav = 100.0 * (fr - g["fuel_corrected_J"].sum()) / fr if whole and fr > 0 else np.nan
         rows.append({"strategy": s, "mass_kg": mass, "battery_MJ": bat, "saving_pct": sav,
                      "n": int(ok.sum()), "n_total": total})
     return pd.DataFrame(rows, columns=cols)
@@ -221,8 +221,8 @@ def plot_fleet_heatmap(out: Path, fleet, ref: str) -> Path | None:
         d = fleet[fleet["strategy"] == s]
         panels.append((f"{s} vs {ref}", _pivot(d, "saving_pct")))
     p = out / FLEET_HEATMAP
-    ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref} "
-                              f"(blank: a route did not finish)")
+    ok = _heatmap_figure(p, panels, f"all routes: fleet fuel saving (%) against {ref}\n"
+                              f"(blank: a route did not finish, or {ref} burned no fuel)")
     return p if ok else None
 
 
@@ -497,7 +497,8 @@ def write_report(directory: str | Path, df=None) -> Path:
                                   f"with a cell that did not finish is left out)"))
     if fleet is not None and not fleet.empty:
         parts.append(_table(fleet, f"fleet saving against {ref} per mass and battery (blank: "
-                                   f"a run of the cell did not finish or is missing)"))
+                                   f"a run of the cell did not finish or is missing, or "
+                                   f"{ref} burned no fuel there)"))
     bad = df[df["status"] != "ok"]
     if len(bad):
         parts.append(_table(bad[["route", "strategy", *grid_cols, "status"]],

@@ -915,8 +915,9 @@ def add_savings(df):
     fuel_corrected_J = fuel_J + lambda_b * delta_Eb_J (lambda_b < 0: energy left in the battery
     is worth |lambda_b| J of fuel); 0 correction for strategies without a battery or without a
     finite lambda_b. saving_vs_X_pct = 100 (F_X - F) / F_X with F the corrected fuel of the row
-    and F_X that of strategy X on the same route and grid point; NaN where X was not run or
-    either row's status is not "ok".
+    and F_X that of strategy X on the same route and grid point; NaN where X was not run,
+    either row's status is not "ok", or F_X is not positive (nothing to save: a route that X
+    runs without fuel, all downhill).
     """
     import pandas as pd
 
@@ -933,7 +934,9 @@ def add_savings(df):
         merged = pd.merge(df[["route", "grid_index"]], refs, on=["route", "grid_index"],
                           how="left")
         f_ref = merged["_ref"].to_numpy(np.float64)
-        df[f"saving_vs_{ref}_pct"] = 100.0 * (f_ref - fuel.to_numpy(np.float64)) / f_ref
+        pos = f_ref > 0
+        df[f"saving_vs_{ref}_pct"] = np.where(
+            pos, 100.0 * (f_ref - fuel.to_numpy(np.float64)) / np.where(pos, f_ref, 1.0), np.nan)
     return df
 
 

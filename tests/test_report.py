@@ -6,6 +6,7 @@ import base64
 import itertools
 import json
 import re
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -284,4 +285,20 @@ def test_a_sweep_of_one_battery_size_has_no_best_battery(tmp_path):
     assert "best battery per mass" not in text and not (d / "best_battery.png").exists()
     assert (d / rp.FLEET_HEATMAP).exists()
     assert rp._text("_depot") == " _depot" and rp._text("a$b") == r"a\$b"
+
+
+def test_a_reference_that_burns_no_fuel_leaves_the_saving_blank_without_warnings():
+    """An all-downhill route run without fuel: 0 / 0 warned on stderr and read as a run that
+    did not finish; now blank, for a reason the captions name."""
+    df = synthetic(8)
+    df.loc[df.route == "flat", "fuel_J"] = 0.0
+    df.loc[df.route == "flat", "delta_Eb_J"] = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = sw.add_savings(df.drop(columns=["fuel_corrected_J", "saving_vs_conventional_pct",
+                                              "saving_vs_baseline_pct"]))
+        fleet = rp.fleet_saving(out[out.route == "flat"], "conventional")
+    assert out[out.route == "flat"]["saving_vs_conventional_pct"].isna().all()
+    assert out[out.route == "hilly"]["saving_vs_conventional_pct"].notna().any()
+    assert fleet.saving_pct.isna().all()
 
