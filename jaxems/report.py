@@ -103,8 +103,9 @@ def fleet_saving(df, ref: str, n_per_cell: int | None = None):
     strategy and the reference, and, where n_per_cell is given (the sweep's routes times its
     other grid points), all of them are there (an unfinished sweep lacks some); otherwise its
     saving is NaN (a fleet saving over a subset of the routes would not be comparable between
-    cells), as it is where the reference's summed fuel is not positive (nothing to save). Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n
-    (pairs ok), n_total (pairs the cell holds, n_per_cell where given).
+    cells), as it is where the reference's summed fuel is not positive (nothing to save).
+    Returns a DataFrame with columns strategy, mass_kg, battery_MJ, saving_pct, n (pairs ok),
+    n_total (pairs the cell holds, n_per_cell where given).
     """
     import pandas as pd
 
