@@ -708,11 +708,12 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
                       jnp.where(finished & standing, st.dwell / dt, 1.0))
     v1 = jnp.where(end_moving, v_d, v1)
     s1 = jnp.where(end_moving, s0 + d_end, s1)
+    h = dt * share  # the time the step counts
     P_bi = pt.battery_internal(vp, P_b)
-    E_b1 = jnp.clip(st.E_b - P_bi * dt * share - E_sync_b, 0.0, vp.E_b_max)
+    E_b1 = jnp.clip(st.E_b - P_bi * h - E_sync_b, 0.0, vp.E_b_max)
 
     live = ~st.done
-    d = lambda x: jnp.where(live, x * dt * share, z)  # noqa: E731
+    d = lambda x: jnp.where(live, x * h, z)  # noqa: E731
     tot = st.tot
     tot = Totals(
         fuel=tot.fuel + d(P_f + P_idle) + jnp.where(live, E_sync_f, 0.0),
@@ -740,7 +741,7 @@ def _step(vp: VehicleParams, track: Track, controller: Controller, dt, carry, k)
                P_e=P_e * live, P_m=P_m * live, P_b=P_b * live, P_f=(P_f + P_idle) * live,
                P_brake=P_brake * live, lam=lam, v_ref=v_ref_here,
                E_sync_b=jnp.where(live, E_sync_b, z), E_sync_f=jnp.where(live, E_sync_f, z),
-               counted=d(jnp.ones_like(P_f)))
+               counted=jnp.where(live, h, z))
     return (new, cparams, cstate), tr
 
 

@@ -129,11 +129,13 @@ def best_battery(fleet) -> object:
     """Per (strategy, mass): the battery with the largest fleet saving, and the smallest battery
     whose saving is within `SUFFICIENT_PP` percentage points of it. A mass with a battery whose
     cell has no fleet saving (a run that did not finish, an unfinished sweep) is left out: its
-    best would be the best of the others."""
+    best would be the best of the others; and a fleet of one battery size has none (it would be
+    that size)."""
     import pandas as pd
 
     rows = []
-    for (s, mass), g in fleet.groupby(["strategy", "mass_kg"]):
+    one_size = fleet["battery_MJ"].nunique() < 2
+    for (s, mass), g in ([] if one_size else fleet.groupby(["strategy", "mass_kg"])):
         if g["saving_pct"].isna().any():
             continue
         g = g.sort_values("battery_MJ")
@@ -444,8 +446,7 @@ def write_report(directory: str | Path, df=None) -> Path:
     if ref is not None:
         fleet = fleet_saving(df, ref, per_cell)
         fleet = fleet[fleet["strategy"] != ref]
-        # the best battery of a sweep of one battery size would be that size
-        best = best_battery(fleet) if fleet["battery_MJ"].nunique() > 1 else None
+        best = best_battery(fleet)
         p = plot_fleet_heatmap(out, fleet, ref)
         if p:
             figs.append((p, f"fleet saving (%) against {ref} over mass x battery, all routes"))
@@ -458,7 +459,7 @@ def write_report(directory: str | Path, df=None) -> Path:
         p = plot_distribution(out, df, ref)
         if p:
             figs.append((p, "distribution of savings over routes"))
-        p = plot_best_battery(out, best) if best is not None else None
+        p = plot_best_battery(out, best)
         if p:
             figs.append((p, "best battery size per mass"))
 

@@ -1136,8 +1136,7 @@ def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None
     """
     if workers is None and scheduler is None:
         return None, None
-    check_executor(workers, scheduler)  # (Dask installed: run_sweep checked it before)
-    from dask.distributed import Client, LocalCluster
+    from dask.distributed import Client, LocalCluster  # installed: `check_executor`
 
     if scheduler is not None:
         try:
