@@ -358,7 +358,7 @@ def cmd_simulate(args) -> int:
     if args.option:  # checked before anything compiles
         from .sweep import option_pairs
 
-        options = option_pairs(args.option)
+        options = option_pairs(args.option, strategy=args.strategy)
     if args.n_iter is not None:
         if "n_iter" in options:
             raise CLIError("--n-iter: given twice (also as --option n_iter=...)")
@@ -448,15 +448,15 @@ def cmd_compare(args) -> int:
     fuel), the runs one after the other.
     """
     from .io import resolve_route
-    from .strategies import level2_names
+    from .strategies import check_strategy, level2_names
     from .sweep import compare_strategies, option_pairs
 
-    strategies = comma_list(args.strategies)
+    strategies = [check_strategy(s) for s in comma_list(args.strategies)]
     traces = check_output(args.traces, "--traces", directory=True)  # before any run
     _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)
-    options = option_pairs(args.option)
+    options = option_pairs(args.option, strategy=strategies)
 
     def progress(row):
         if not args.json:

@@ -933,6 +933,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
     dt = check_dt(dt)
     opts = resolve_options(make_options(options), vehicles)
+    check_options_used(strategy, given_options(options))
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
@@ -1008,11 +1009,13 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     mass_kg, battery_MJ, initial_soc: overrides (validated: positive, positive, in [0, 1]);
     options: `Options` (or its fields as keywords, e.g. n_iter=3, h1=5); switching:
     `SwitchCostParams` (None: the defaults; `switching.checked_params`). Bad options raise
-    ValueError naming the option.
+    ValueError naming the option, and so does an option named here (a keyword or a dict's
+    key) that the strategy does not depend on (`STRATEGY_OPTIONS`).
     """
     check_strategy(strategy)
     dt = check_dt(dt)
     opts = make_options(options, **option_kw)
+    check_options_used(strategy, given_options(options, option_kw))
     rname, route = named_route(route, name)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
@@ -1085,6 +1088,46 @@ _REAL_OPTIONS = {
     "end_reserve": (0.0, 1.0, False, False),
 }
 _MAY_BE_NONE = ("soc_ref", "same_open_time", "eco_lambda_t")
+
+# the options each strategy's run depends on (`check_options_used`): the plant's; those of a
+# plan run on the plant (multilevel's, multilevel-eco's and dp-bound's; conventional's plan
+# reads them too, but with no battery they change nothing); the iteration's
+_PLANT_OPTIONS = ("plant_extra", "end_cap", "same_open_time")
+_PLAN_OPTIONS = ("tau_E", "level0_plan_power", "trim_excursions")
+_ITERATION_OPTIONS = ("n_iter", "sustain", "guard_sides", "l2_pieces", "end_reserve",
+                      *_PLAN_OPTIONS)
+STRATEGY_OPTIONS = {
+    "conventional": _PLANT_OPTIONS,
+    "baseline": (*_PLANT_OPTIONS, "lam0", "kp", "soc_ref", "ke_share", "dwell"),
+    "multilevel": (*_PLANT_OPTIONS, *_ITERATION_OPTIONS),
+    "multilevel-mpc": (*_PLANT_OPTIONS, "h1", "h2", "t2", "mpc_pieces", "mpc_end_reserve",
+                       "lam0"),
+    "dp-bound": (*_PLANT_OPTIONS, *_PLAN_OPTIONS, "dp_n_E", "dp_lams", "dp_penalty",
+                 "dp_attempts"),
+    "multilevel-eco": (*_PLANT_OPTIONS, *_ITERATION_OPTIONS, "eco_lambda_t", "eco_time_ratio",
+                       "eco_overspeed_kmh"),
+}
+
+
+def given_options(options, option_kw=()) -> list[str]:
+    """The option names a caller set by name: `option_kw`'s and, where `options` is a dict,
+    its keys (an `Options` object names none: it may serve several strategies)."""
+    return [*(options if isinstance(options, Mapping) else ()), *option_kw]
+
+
+def check_options_used(strategies, names, where: str = "") -> None:
+    """ValueError naming the first option in `names` that none of `strategies` (a name or a
+    list) depends on (`STRATEGY_OPTIONS`): set for a strategy that ignores it, it would
+    change nothing (`n_iter` for baseline) and the user would not know."""
+    strategies = [check_strategy(s) for s in
+                  ([strategies] if isinstance(strategies, str) else strategies)]
+    for k in names:
+        if k in Options._fields and not any(k in STRATEGY_OPTIONS[s] for s in strategies):
+            users = [s for s in STRATEGIES if k in STRATEGY_OPTIONS[s]]
+            which = " or ".join(strategies) if len(strategies) < 3 else \
+                f"{', '.join(strategies[:-1])} or {strategies[-1]}"
+            raise ValueError(f"{where}{k}: not an option of {which}, which would ignore it "
+                             f"(an option of {', '.join(users)})")
 
 
 def _check_options(o: Options):

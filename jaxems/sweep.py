@@ -421,7 +421,7 @@ def load_config(path: str | Path) -> SweepConfig:
                              f"({', '.join(strategies)})")
         if not isinstance(v, dict):
             raise SweepError(f"{src}: options.{k}: expected a table")
-        strategy_options(v, f"{src}: options.{k}")
+        strategy_options(v, f"{src}: options.{k}", strategy=k)
 
     # vehicle
     vspec = doc.get("vehicle", "reference_truck")
@@ -499,9 +499,10 @@ def load_config(path: str | Path) -> SweepConfig:
     )
 
 
-def option_pairs(pairs, where: str = "--option") -> dict:
+def option_pairs(pairs, where: str = "--option", strategy=None) -> dict:
     """{name: value} from "NAME=VALUE" strings (VALUE a TOML value: `sustain=false`,
-    `l2_pieces=64`), checked as a sweep file's options table is (`strategy_options`).
+    `l2_pieces=64`), checked as a sweep file's options table is (`strategy_options`, for
+    `strategy`: a name or a list).
 
     Raises `SweepError` naming the pair, or the option, that is bad."""
     out = {}
@@ -513,21 +514,26 @@ def option_pairs(pairs, where: str = "--option") -> dict:
             out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
         except (ValueError, tomllib.TOMLDecodeError) as e:
             raise SweepError(f"{where} {pair!r}: {e}") from None
-    strategy_options(out, where)
+    strategy_options(out, where, strategy)
     return out
 
 
-def strategy_options(d: dict | None, where: str = "options"):
-    """`jaxems.strategies.Options` from a table of the sweep file (None: the defaults).
+def strategy_options(d: dict | None, where: str = "options", strategy=None):
+    """`jaxems.strategies.Options` from a table of the sweep file (None: the defaults);
+    strategy: the strategy (or a list of strategies) the table is for, if known.
 
-    Raises `SweepError` naming the option for an unknown name or a bad value.
+    Raises `SweepError` naming the option for an unknown name, a bad value or, given
+    `strategy`, an option that none of them depends on (`strategies.check_options_used`).
     """
     from . import strategies as st
 
     if not d:
         return None
     try:
-        return st.make_options(**d)
+        opts = st.make_options(**d)
+        if strategy is not None:
+            st.check_options_used(strategy, d)
+        return opts
     except ValueError as e:
         raise SweepError(f"{where}: {e}") from None
 
@@ -966,7 +972,8 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
 
     from .params import with_overrides
     from .report import corrected_l_per_100km
-    from .strategies import check_strategy, make_options, named_route, simulate
+    from .strategies import (check_options_used, check_strategy, make_options, named_route,
+                             simulate)
 
     strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
@@ -976,6 +983,7 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     if len(set(strategies)) < len(strategies):
         raise ValueError(f"strategies: each at most once (got {', '.join(strategies)})")
     opts = make_options(None, **options)
+    check_options_used(strategies, options)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ, initial_soc=initial_soc)
     name, route = named_route(route, name)  # loaded and checked once

@@ -164,6 +164,10 @@ def test_simulate_registered():
         (["--option", "l2_pieces"], "--option 'l2_pieces': expected NAME=VALUE"),
         (["--option", "n_iter=0"], "n_iter: must be a whole number >= 1"),
         (["--option", "n_iter=2", "--n-iter", "3"], "--n-iter: given twice"),
+        # an option the strategy ignores would change nothing
+        (["--strategy", "baseline", "--option", "h1=3"],
+         "--option: h1: not an option of baseline, which would ignore it"),
+        (["--strategy", "baseline", "--n-iter", "3"], "n_iter: not an option of baseline"),
     ],
 )
 def test_simulate_bad_options_in_process(capsys, args, words):
@@ -406,3 +410,6 @@ def test_compare_cli_errors(capsys):
     assert code == 1 and "no_such_route" in err
     code, _, err = run(capsys, "compare", "short_track", "--option", "bogus=1")
     assert code == 1 and "bogus" in err
+    code, _, err = run(capsys, "compare", "short_track", "--option", "dp_n_E=51")
+    assert code == 1 and ("--option: dp_n_E: not an option of conventional, baseline or "
+                          "multilevel, which would ignore it (an option of dp-bound)") in err

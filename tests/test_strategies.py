@@ -590,6 +590,60 @@ def test_bad_option_values_name_the_option(name, value, says):
                           lam0=np.float32(-2.0)).kp == 0
 
 
+class _ReadOptions(S.Options):
+    """Options that record which fields a kernel reads while it is traced."""
+
+    read: set = set()
+
+    def __getattribute__(self, name):
+        if name in S.Options._fields:
+            _ReadOptions.read.add(name)
+        return super().__getattribute__(name)
+
+
+# options a kernel reads that cannot change its run: conventional's plan has no battery to
+# trim or feed back (checked in `test_an_option_a_strategy_ignores_is_refused`)
+READ_WITHOUT_EFFECT = {"conventional": {"tau_E", "level0_plan_power", "trim_excursions"}}
+
+
+@pytest.mark.parametrize("strategy", S.STRATEGIES)
+def test_strategy_options_are_what_its_kernel_reads(strategy):
+    """`STRATEGY_OPTIONS` (what `check_options_used` lets a user set for a strategy) is the set
+    of options its kernel reads, found by tracing it (no compilation) with recording Options;
+    same_open_time is read on the host (`resolve_options`) for every strategy."""
+    route = load_route("short_track")
+    opts = _ReadOptions(*S.resolve_options(S.Options(), VP))
+    n_steps = S.steps_for_batch(route, VP, 1.0, strategy, opts)
+    _ReadOptions.read = set()
+    jax.eval_shape(S._kernel(strategy, 1.0, n_steps, opts), route, VP, S.sw.SwitchCostParams())
+    read = _ReadOptions.read | {"same_open_time"}
+    assert read - READ_WITHOUT_EFFECT.get(strategy, set()) == set(S.STRATEGY_OPTIONS[strategy])
+    assert set().union(*map(set, S.STRATEGY_OPTIONS.values())) == set(S.Options._fields)
+
+
+def test_an_option_a_strategy_ignores_is_refused(runs):
+    """An option that the strategy does not depend on is an error naming it and the
+    strategies that do, by every door (simulate, simulate_batch, compare_strategies, a sweep
+    file's table), before anything compiles; for several strategies it must serve one."""
+    says = r"^n_iter: not an option of baseline, which would ignore it \(an option of multilevel"
+    with pytest.raises(ValueError, match=says):
+        S.simulate("short_track", VP, "baseline", n_iter=3)
+    with pytest.raises(ValueError, match=says):
+        S.simulate("short_track", VP, "baseline", options={"n_iter": 3})
+    with pytest.raises(ValueError, match="^dp_n_E: not an option of multilevel-mpc"):
+        S.simulate_batch("short_track", stack_vehicles([VP]), "multilevel-mpc",
+                         options={"dp_n_E": 51})
+    with pytest.raises(ValueError, match="^h1: not an option of conventional or baseline"):
+        compare_strategies("short_track", VP, ["conventional", "baseline"], h1=3)
+    # an Options object names no option (it may serve several strategies); what conventional
+    # reads without effect (READ_WITHOUT_EFFECT) changes nothing indeed
+    res = S.simulate("short_track", VP, "conventional",
+                     options=S.make_options(n_iter=3, tau_E=5.0, level0_plan_power=False,
+                                           trim_excursions=False))
+    assert res.fields["fuel_J"] == runs["conventional"]["fuel_J"]
+    assert res.fields["trip_time_s"] == runs["conventional"]["trip_time_s"]
+
+
 def test_same_open_time_only_for_vehicles_whose_open_times_are_equal():
     """same_open_time=True selects Level 1's relaxation for dt_M == dt_G; for a vehicle whose
     open times differ it is an error naming the option, not a silently different run; left

@@ -69,6 +69,8 @@ def test_good_file_parses(tmp_path):
         (GOOD.replace("batch_size = 4", "batch_size = 2.5"), r"batch_size: expected a whole"),
         (GOOD + "[options.baseline]\nlam00 = -2\n", r"options\.baseline: unknown option 'lam00'"),
         (GOOD + "[options.multilevel]\nn_iter = 2\n", r"options\.multilevel: not one of"),
+        (GOOD + "[options.baseline]\nn_iter = 3\n",
+         r"options\.baseline: n_iter: not an option of baseline, which would ignore it"),
         (GOOD.replace("routes", "vehicle = 'no_truck'\nroutes"), r"vehicle: no_truck"),
         ("routes = [", r"not valid TOML"),
         # checked here, not in every chunk (each chunk failed with the sweep's exit status 0)
