@@ -252,8 +252,23 @@ def params_from_dict(doc: dict, source: str = "<dict>") -> VehicleParams:
             )
     if vals["we_max"] <= vals["we_min"]:
         raise VehicleError(f"{source}: engine.speed_max_rpm must exceed engine.speed_min_rpm")
+    # the fields together: the torque curves span the engine's speed range (beyond their ends
+    # they are held flat: a curve that stops short ran on made-up torque); Level 3 predicts at
+    # a speed the engine runs at (5000 rpm made a 419 kW engine of it); gear 1 is the shortest
+    speeds = f"the engine's speed range, {doc['engine']['speed_min_rpm']:g} to " \
+             f"{doc['engine']['speed_max_rpm']:g} rpm"
+    for field, key in (("te_max_w", "max_torque_rpm"), ("te_min_w", "min_torque_rpm")):
+        if vals[field][0] > vals["we_min"] or vals[field][-1] < vals["we_max"]:
+            raise VehicleError(f"{source}: engine.{key}: must span {speeds} "
+                               f"(got {doc['engine'][key]!r})")
+    if not vals["we_min"] <= vals["w_pred"] <= vals["we_max"]:
+        raise VehicleError(f"{source}: driving.prediction_engine_speed_rpm: must be within "
+                           f"{speeds} (got {doc['driving']['prediction_engine_speed_rpm']!r})")
     n = int(vals.pop("_gears"))
     base = vals.pop("_gear_base")
+    if n > 1 and base <= 1:
+        raise VehicleError(f"{source}: gearbox.base: must be > 1 with more than one gear (the "
+                           f"ratios base^(gears - G) fall from gear 1) (got {base:g})")
     vals["gear_ratio"] = base ** (n - np.arange(1, n + 1, dtype=np.float64))
     vals["has_motor"] = np.float64(1.0)
     return VehicleParams(**vals)
@@ -310,12 +325,16 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
                 i = int(np.flatnonzero((flat == v) | (np.isnan(flat) & np.isnan(v)))[0])
                 check_number(float(v), kind, f"{field}[{i}]", VehicleError)
     try:
-        bad = np.flatnonzero(np.reshape(np.asarray(vp.we_max) <= np.asarray(vp.we_min), -1))
+        we_min, we_max, w_pred = (np.asarray(x) for x in (vp.we_min, vp.we_max, vp.w_pred))
+        rules = (("we_max", we_max <= we_min, "must exceed we_min (the engine's speed range)"),
+                 ("w_pred", (w_pred < we_min) | (w_pred > we_max),
+                  "must be within [we_min, we_max] (the engine's speed range)"))
     except TypeError:  # a tracer
         return vp
-    if bad.size:
-        at = "" if np.ndim(vp.we_max) == 0 and np.ndim(vp.we_min) == 0 else f"[{bad[0]}]"
-        raise VehicleError(f"we_max{at}: must exceed we_min (the engine's speed range)")
+    for field, broken, words in rules:
+        bad = np.flatnonzero(np.reshape(broken, -1))
+        if bad.size:
+            raise VehicleError(f"{field}{'' if np.ndim(broken) == 0 else f'[{bad[0]}]'}: {words}")
     return vp
 
 

@@ -126,6 +126,16 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("battery", "capacity_J", 1e30, "must be from 1e4 to 1e11 J"),
         ("fuel", "lower_heating_value_J_per_kg", 42.8, "must be from 1e6 to 1e9 J/kg"),
         ("fuel", "density_kg_per_l", 832.0, "must be from 0.01 to 10 kg/l"),
+        # the fields together: curves over the engine's whole speed range, Level 3's engine
+        # speed within it (5000 rpm predicted a 419 kW engine), gear 1 the shortest
+        ("engine", "max_torque_rpm", [700.0, 1000, 1400, 1600, 1800, 2300],
+         "must span the engine's speed range, 600 to 2300 rpm"),
+        ("engine", "min_torque_rpm", [600.0, 1200.0, 2000.0], "must span"),
+        ("driving", "prediction_engine_speed_rpm", 5000.0,
+         "must be within the engine's speed range, 600 to 2300 rpm"),
+        ("driving", "prediction_engine_speed_rpm", 100.0, "must be within"),
+        ("gearbox", "base", 1.0, "must be > 1 with more than one gear"),
+        ("gearbox", "base", 0.8, "must be > 1"),
     ],
 )
 def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
@@ -234,6 +244,7 @@ def test_stack_vehicles():
         ("c_r", -0.001, "must be >= 0"),
         ("E_b_max", float("nan"), "expected a finite number"),
         ("we_max", 10.0, "must exceed we_min"),
+        ("w_pred", 500.0, r"must be within \[we_min, we_max\]"),
         ("beta", 1e-15, "must be >= 1e-12"),
         # the rules read a value in the file's unit: 1 km/h as m/s, the message in km/h
         ("v_cruise", 1.0 * KMH, r"must be >= 1.8 km/h.*\(got 1\.0"),
