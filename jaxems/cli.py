@@ -389,7 +389,10 @@ def cmd_simulate(args) -> int:
             unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
             if out["charge_missed"]:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
-        if key == "trip_time_s":  # against the Level 3 prediction the run followed
+        if key == "trip_time_s" and "unfinished" in out["status"]:  # no trip time to compare
+            text, unit = "-", ("(the run did not reach the route's end: its fuel and battery "
+                               "figures are over the steps it ran)")
+        elif key == "trip_time_s":  # against the Level 3 prediction the run followed
             t3 = out["level3_trip_time_s"]
             unit += (f" (Level 3: {t3:.1f} s, {float(trip_vs_level3_pct(v, t3)):+.2f} %)"
                      if t3 > 0 else "")

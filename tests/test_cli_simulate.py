@@ -229,6 +229,10 @@ def test_simulate_flags_a_charge_miss_as_sweep_reports_do(capsys, monkeypatch, d
     code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
     line = next(x for x in out.splitlines() if x.startswith("delta E_b"))
     assert line.endswith("beyond 1 %: not charge sustaining") is missed
+    # an unfinished run has no trip time to set against Level 3's (it printed 0 s, -100 %)
+    trip = next(x for x in out.splitlines() if x.startswith("trip time"))
+    assert ("did not reach the route's end" in trip) is (status == "unfinished")
+    assert ("Level 3: 151.9 s" in trip) is (status != "unfinished")
 
 
 def test_simulate_passes_options_on_and_echoes_them(capsys, monkeypatch):
