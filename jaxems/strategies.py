@@ -1115,7 +1115,7 @@ def given_options(options, option_kw=()) -> list[str]:
     return [*(options if isinstance(options, Mapping) else ()), *option_kw]
 
 
-def check_options_used(strategies, names, where: str = "") -> None:
+def check_options_used(strategies, names) -> None:
     """ValueError naming the first option in `names` that none of `strategies` (a name or a
     list) depends on (`STRATEGY_OPTIONS`): set for a strategy that ignores it, it would
     change nothing (`n_iter` for baseline) and the user would not know."""
@@ -1126,7 +1126,7 @@ def check_options_used(strategies, names, where: str = "") -> None:
             users = [s for s in STRATEGIES if k in STRATEGY_OPTIONS[s]]
             which = " or ".join(strategies) if len(strategies) < 3 else \
                 f"{', '.join(strategies[:-1])} or {strategies[-1]}"
-            raise ValueError(f"{where}{k}: not an option of {which}, which would ignore it "
+            raise ValueError(f"{k}: not an option of {which}, which would ignore it "
                              f"(an option of {', '.join(users)})")
 
 
