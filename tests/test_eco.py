@@ -18,6 +18,8 @@ from jaxems.levels import velocity as vel
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.levels.velocity import (
     ECO_TARGET_FAST,
+    ECO_TARGET_MISSED,
+    ECO_TARGET_SLOW,
     V_CRAWL,
     eco_cost,
     eco_cost_exact,
@@ -434,8 +436,24 @@ def test_match_trip_time():
     assert float(one.trip_time) == pytest.approx(target, rel=5e-3)
     # faster than Level 3 (the envelope) cannot be had: flagged, the fastest is returned
     lt_f, fast = MATCH(HILL, VP, 0.95 * l3_trip, LAM_B)
-    assert int(fast.status) & ECO_TARGET_FAST
+    assert int(fast.status) == ECO_TARGET_FAST
     assert float(fast.trip_time) >= l3_trip - 1e-9
+    # slower than the cheapest second's optimum: flagged as such
+    _, slow = MATCH(HILL, VP, 20.0 * l3_trip, LAM_B)
+    assert int(slow.status) == ECO_TARGET_SLOW
+
+
+@pytest.mark.parametrize("rel, all_fast, all_slow, want", [
+    (0.02, False, True, ECO_TARGET_FAST),  # too slow at every price: beyond the envelope
+    (-0.02, True, False, ECO_TARGET_SLOW),
+    # the trip time jumps across the target between two prices: missed, not "too fast"
+    (0.02, False, False, ECO_TARGET_MISSED),
+    (-0.02, False, False, ECO_TARGET_MISSED),
+    (0.004, False, True, 0), (-0.004, True, False, 0),  # within MATCH_RTOL (0.5 %)
+])
+def test_match_trip_time_names_why_it_missed(rel, all_fast, all_slow, want):
+    assert int(vel.target_flags(jnp.asarray(rel), jnp.asarray(all_fast),
+                                jnp.asarray(all_slow))) == want
 
 
 def test_overspeed_band_pays_at_level3s_trip_time():
