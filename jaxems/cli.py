@@ -373,6 +373,14 @@ def cmd_simulate(args) -> int:
                                 and off_charge(out["delta_Eb_J"], float(vp.E_b_max)))
     # the last plan's Level 2 flags by name (None: a strategy without the iteration's Level 2)
     level2 = out["level2_status"] = level2_names(out["level2_status"])
+    eco = None
+    if res.strategy == "multilevel-eco":  # what sizes and explains an eco-trip-time-missed
+        from .levels.velocity import eco_status_names
+
+        eco = {"eco_lambda_t": float(res.extra.lambda_t),
+               "eco_level3_trip_time_s": float(res.extra.level3_trip_time),
+               "eco_status": eco_status_names(int(res.extra.eco_status))}
+        out |= eco
     write_run_files(res, vp, csv, plot)
     if args.json:
         print(json.dumps(_json_safe(out)))
@@ -400,6 +408,10 @@ def cmd_simulate(args) -> int:
     if level2 is not None:
         hint = " (more pieces: --option l2_pieces=N)" if "pieces-exhausted" in level2 else ""
         rows.append(("Level 2 (last plan)", (", ".join(level2) or "converged") + hint))
+    if eco is not None:
+        rows.append(("eco-driving", f"lambda_t {eco['eco_lambda_t']:.0f} J/s, Level 3's own trip "
+                                    f"{eco['eco_level3_trip_time_s']:.1f} s, "
+                                    f"{', '.join(eco['eco_status']) or 'target met'}"))
     rows += [(label, str(p)) for label, p in (("time series", csv), ("plot", plot))
              if p is not None]
     _print_table(rows)

@@ -283,6 +283,37 @@ def test_simulate_names_the_last_plans_level2_flags(capsys, monkeypatch):
     assert not any(x.startswith("Level 2") for x in out.splitlines())
 
 
+def test_simulate_gives_the_eco_optimisations_figures(capsys, monkeypatch):
+    """multilevel-eco's price of time, Level 3's own trip time and the optimiser's flags by
+    name, in the JSON and the table (an eco-trip-time-missed could not be sized from the
+    output before); absent for the other strategies."""
+    from types import SimpleNamespace
+
+    from jaxems import strategies
+    from jaxems.levels import velocity as vel
+
+    def fake(*a, **k):
+        r = _FakeRun(0.0, status="eco-trip-time-missed", strategy="multilevel-eco")
+        r.extra = SimpleNamespace(lambda_t=3693.2, level3_trip_time=151.9,
+                                  eco_status=vel.ECO_TARGET_MISSED)
+        return r
+
+    monkeypatch.setattr(strategies, "simulate", fake)
+    code, out, err = run(capsys, "simulate", "short_track", "--strategy", "multilevel-eco",
+                         "--json")
+    assert code == 0, err
+    d = json.loads(out)
+    assert (d["eco_lambda_t"], d["eco_level3_trip_time_s"], d["eco_status"]) == (
+        3693.2, 151.9, ["target-missed"])
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "multilevel-eco")
+    assert any(x.startswith("eco-driving") and x.endswith(
+        "lambda_t 3693 J/s, Level 3's own trip 151.9 s, target-missed")
+        for x in out.splitlines())
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: _FakeRun(0.0))
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline", "--json")
+    assert "eco_lambda_t" not in json.loads(out)
+
+
 # ---------------------------------------------------------------------------------- compare
 FAKE = {"conventional": (13.0e6, 0.0, 0.0), "baseline": (11.0e6, -2.2, -0.101e6),
         "multilevel": (7.0e6, -2.0, 0.02e6)}
