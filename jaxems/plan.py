@@ -415,14 +415,13 @@ def sustaining_dps(T: int, n_bisect: int = 14) -> int:
     return _sustaining_phases(T, n_bisect)[-1] + 1
 
 
-def split_sides(vp, dE_first, dE_then, pid, target, t0, t1, then_high, within=None,
-                tol=0.0):
+def split_sides(vp, dE_first, dE_then, pid, target, t0, t1, then_high, within, tol):
     """The time split of `sustaining_level1` on its two sides' plans joined: each piece runs
     the plan `first` (dE_first: (T,) its steps' energy changes) up to a step t_s and `then`
     after it, t_s in [t0, t1) (K,) found by bisection down to one step on the piece's end
     within the battery's limits (`held_piece_error`), where then_high (K,): `then` alone ends
-    above the target; where within (K,) (None: nowhere), `then` alone ends within tol (J) of
-    the target and t0 is where the joined end stays within tol of it, t1 where it does not.
+    above the target; where within (K,), `then` alone ends within tol (J) of the target and
+    t0 is where the joined end stays within tol of it, t1 where it does not.
     Returns the final (t0, t1) (K,)."""
     k = jnp.arange(dE_first.shape[0])
 
@@ -430,10 +429,7 @@ def split_sides(vp, dE_first, dE_then, pid, target, t0, t1, then_high, within=No
         t0, t1 = c
         m = (t0 + t1) // 2
         e = held_piece_error(vp, jnp.where(k < m[pid], dE_first, dE_then), pid, target)
-        later = (e > 0) == then_high
-        if within is not None:
-            later = jnp.where(within, jnp.abs(e) <= tol, later)
-        return narrow(t0, t1, m, later)
+        return narrow(t0, t1, m, jnp.where(within, jnp.abs(e) <= tol, (e > 0) == then_high))
 
     return jax.lax.fori_loop(0, _split_bisections(dE_first.shape[0]), bis, (t0, t1))
 

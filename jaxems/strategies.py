@@ -939,8 +939,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
         if chunk != "auto":
             raise ValueError(f"chunk: an integer >= 1, None or 'auto' (got {chunk!r})")
     dt = check_dt(dt)
-    opts = resolve_options(make_options(options), vehicles)
-    check_options_used(strategy, given_options(options))
+    opts = resolve_options(make_options(options, strategy), vehicles)
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
@@ -1021,8 +1020,7 @@ def simulate(route, vehicle="reference_truck", strategy: str = "multilevel", *,
     """
     check_strategy(strategy)
     dt = check_dt(dt)
-    opts = make_options(options, **option_kw)
-    check_options_used(strategy, given_options(options, option_kw))
+    opts = make_options(options, strategy, **option_kw)
     rname, route = named_route(route, name)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = check_vehicle(with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ,
@@ -1058,10 +1056,13 @@ def resolve_options(opts: Options, vehicles: VehicleParams) -> Options:
     return opts
 
 
-def make_options(base: Options | Mapping | None = None, /, **fields) -> Options:
+def make_options(base: Options | Mapping | None = None, strategies=None, /,
+                 **fields) -> Options:
     """`base` (None: the defaults; a dict: its fields) with `fields` replaced, checked:
     ValueError naming an unknown option or a bad value (the one check of `simulate`, sweep
-    files and --option)."""
+    files and --option), and, given `strategies` (a name or a list), an option named here (a
+    key of the dict or of `fields`; an `Options` base names none: it may serve several
+    strategies) that none of them depends on (`check_options_used`)."""
     if isinstance(base, Mapping):  # the fields as a dict, as a sweep file's table gives them
         base, fields = None, {**base, **fields}
     elif base is not None and not isinstance(base, Options):
@@ -1072,6 +1073,8 @@ def make_options(base: Options | Mapping | None = None, /, **fields) -> Options:
         raise ValueError(f"unknown option {bad[0]!r} (options: {', '.join(Options._fields)})")
     opts = (base or Options())._replace(**fields)
     _check_options(opts)
+    if strategies is not None:
+        check_options_used(strategies, fields)
     return opts
 
 
@@ -1114,12 +1117,6 @@ STRATEGY_OPTIONS = {
     "multilevel-eco": (*_PLANT_OPTIONS, *_ITERATION_OPTIONS, "eco_lambda_t", "eco_time_ratio",
                        "eco_overspeed_kmh"),
 }
-
-
-def given_options(options, option_kw=()) -> list[str]:
-    """The option names a caller set by name: `option_kw`'s and, where `options` is a dict,
-    its keys (an `Options` object names none: it may serve several strategies)."""
-    return [*(options if isinstance(options, Mapping) else ()), *option_kw]
 
 
 def check_options_used(strategies, names) -> None:

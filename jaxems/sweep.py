@@ -444,7 +444,7 @@ def load_config(path: str | Path) -> SweepConfig:
         raise SweepError(f"{src}: grid: empty; give at least one parameter with values, e.g. "
                          f"[grid] mass_kg = [20000, 40000]")
     grid: dict[str, tuple[float, ...]] = {}
-    fields_seen: dict[str, str] = {}
+    grid_fields: set[str] = set()  # the vehicle fields the grid sets
     for key, spec in grid_doc.items():
         where = f"{src}: grid.{key}"
         if key in USER_KEY:
@@ -460,7 +460,7 @@ def load_config(path: str | Path) -> SweepConfig:
         if np.ndim(getattr(vehicle, field)) != 0:
             raise SweepError(f"{where}: {field} is a curve, not a number; it cannot be a grid "
                              f"parameter")
-        fields_seen[field] = key  # one key a field: a raw name of a user key's is refused
+        grid_fields.add(field)
         values = _grid_values(spec, where)
         if not values:
             raise SweepError(f"{where}: empty list of values")
@@ -478,7 +478,7 @@ def load_config(path: str | Path) -> SweepConfig:
     file_key = {field: (f"{section}.{key}", scale)
                 for (section, key), (field, scale, _) in _SCHEMA.items()}
     for field, x in zip(VehicleParams._fields, vehicle, strict=True):
-        if field not in fields_seen:
+        if field not in grid_fields:
             name, scale = file_key.get(field, (field, 1.0))
             _check_precision(np.asarray(x) / scale, scale, precision,
                              f"{src}: vehicle: {name}", indexed=np.ndim(x) > 0)
@@ -530,10 +530,7 @@ def strategy_options(d: dict | None, where: str = "options", strategy=None):
     if not d:
         return None
     try:
-        opts = st.make_options(**d)
-        if strategy is not None:
-            st.check_options_used(strategy, d)
-        return opts
+        return st.make_options(d, strategy)
     except ValueError as e:
         raise SweepError(f"{where}: {e}") from None
 
@@ -972,8 +969,7 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
 
     from .params import with_overrides
     from .report import corrected_l_per_100km
-    from .strategies import (check_options_used, check_strategy, make_options, named_route,
-                             simulate)
+    from .strategies import check_strategy, make_options, named_route, simulate
 
     strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
@@ -982,8 +978,7 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
         check_strategy(s)
     if len(set(strategies)) < len(strategies):
         raise ValueError(f"strategies: each at most once (got {', '.join(strategies)})")
-    opts = make_options(None, **options)
-    check_options_used(strategies, options)
+    opts = make_options(None, strategies, **options)
     vp = vehicle if isinstance(vehicle, VehicleParams) else load_vehicle(vehicle)
     vp = with_overrides(vp, mass_kg=mass_kg, battery_MJ=battery_MJ, initial_soc=initial_soc)
     name, route = named_route(route, name)  # loaded and checked once

@@ -20,6 +20,8 @@ from jaxems.levels.velocity import predict_velocity
 from jaxems.params import load_vehicle, vehicle_axes
 from jaxems.route import Row, route_from_rows
 
+import trace_checks
+
 ROWS = [
     Row(0, 0, 0.0, 5), Row(0.001, 40, 0.0, 0), Row(300, 40, 5.0, 0), Row(500, 40, 0.0, 0),
     Row(600, 40, -6.0, 0), Row(700, 40, 0.0, 0), Row(800, 0, 0.0, 10), Row(800.001, 50, 1.0, 0),
@@ -684,15 +686,11 @@ def assert_trace_closes(vp, res):
     each step's battery energy follows from the last by its internal power over that time and
     the synchronisation energy drawn from the battery, within the battery's limits."""
     tr, t = res.trace, res.final.tot
-    span, sync_b, sync_f = (np.asarray(x) for x in (tr.counted, tr.E_sync_b, tr.E_sync_f))
-    fuel = np.sum(np.asarray(tr.P_f) * span) + np.sum(sync_f)
-    assert fuel == pytest.approx(float(t.fuel), rel=1e-10, abs=1e-3)
-    assert np.sum(sync_b + sync_f) == pytest.approx(float(t.loss_sync), rel=1e-10, abs=1e-3)
-    P_b = np.asarray(tr.P_b)
-    E = np.append(np.asarray(tr.E_b), float(res.final.E_b))
-    after = np.clip(E[:-1] - (P_b + float(vp.beta) * P_b * P_b) * span - sync_b, 0.0,
-                    float(vp.E_b_max))
-    np.testing.assert_allclose(E[1:], after, rtol=1e-12, atol=1e-6)
+    trace_checks.assert_trace_closes(float(vp.beta), float(vp.E_b_max), tr.P_f, tr.P_b,
+                                     tr.counted, tr.E_sync_f, tr.E_sync_b, tr.E_b,
+                                     float(res.final.E_b), float(t.fuel), fuel_abs=1e-3)
+    sync = np.sum(np.asarray(tr.E_sync_b)) + np.sum(np.asarray(tr.E_sync_f))
+    assert sync == pytest.approx(float(t.loss_sync), rel=1e-10, abs=1e-3)
 
 
 @settings(max_examples=8, deadline=None)

@@ -27,6 +27,7 @@ from jaxems.io import load_route
 from jaxems.sweep import compare_strategies
 from jaxems.params import VehicleError, load_vehicle, stack_vehicles
 from repo_scripts import load_script
+from trace_checks import assert_trace_closes
 
 VP = load_vehicle().replace(mass=25000.0)
 LEVEL3 = xla.jit(S.level3, static_argnums=(2, 3))  # (route, vp, dt, n_steps)
@@ -48,16 +49,11 @@ def test_every_runs_time_series_accounts_for_its_totals(runs):
     each step counts plus the synchronisation energy from fuel is fuel_J, and each step's E_b
     follows from the step before by its battery power and the synchronisation energy the
     battery gave, so that the rows' own sum gives delta_Eb_J."""
-    beta, E_max = float(VP.beta), float(VP.E_b_max)
     for name, r in runs.items():
         c, d = r.trace_columns(), r.as_dict()
-        fuel = np.sum(c["P_f_W"] * c["counted_s"]) + np.sum(c["E_sync_f_J"])
-        assert fuel == pytest.approx(d["fuel_J"], rel=1e-10), name
-        E = np.append(c["E_b_J"], c["E_b_J"][0] + d["delta_Eb_J"])
-        P_b = c["P_b_W"]
-        after = np.clip(E[:-1] - (P_b + beta * P_b * P_b) * c["counted_s"] - c["E_sync_b_J"],
-                        0.0, E_max)
-        np.testing.assert_allclose(E[1:], after, rtol=1e-12, atol=1e-6, err_msg=name)
+        assert_trace_closes(float(VP.beta), float(VP.E_b_max), c["P_f_W"], c["P_b_W"],
+                            c["counted_s"], c["E_sync_f_J"], c["E_sync_b_J"], c["E_b_J"],
+                            c["E_b_J"][0] + d["delta_Eb_J"], d["fuel_J"], msg=name)
         if name in HYBRID:  # the hybrids start the engine from the battery
             assert np.sum(c["E_sync_b_J"]) > 0, name
 
