@@ -40,7 +40,8 @@ eco-driving; see `jaxems.xla`). `--emitters elemental` or `fusion` compiles ever
 batch with one of them, to compare.
 
 `--option NAME=VALUE` (repeatable) sets a field of `strategies.Options` for every strategy
-measured, checked as a sweep file's options table is (`sweep.option_pairs`); VALUE is
+measured, checked as a sweep file's options table is (`sweep.option_pairs`; one that no
+measured strategy depends on is refused, as it would time what it ignores); VALUE is
 a TOML value (`--option sustain=false`, `--option n_iter=3`). The JSON lists them under
 "options".
 
@@ -360,13 +361,13 @@ def scaling(args, base: dict) -> dict:
     return out
 
 
-def parse_options(pairs: list[str]) -> dict:
-    """{name: value} from NAME=VALUE strings (`jaxems.sweep.option_pairs`); SystemExit naming
-    the bad one."""
+def parse_options(pairs: list[str], strategies: list[str]) -> dict:
+    """{name: value} from NAME=VALUE strings (`jaxems.sweep.option_pairs`), each one an option
+    that at least one of `strategies` depends on; SystemExit naming the bad one."""
     from jaxems.sweep import SweepError, option_pairs
 
     try:
-        return option_pairs(pairs)
+        return option_pairs(pairs, strategy=strategies)
     except SweepError as e:
         raise SystemExit(f"bench_sweep: {e}") from None
 
@@ -418,7 +419,8 @@ def main(argv=None) -> int:
         ap.error("--devices, --chunk and --batch must be >= 1")
     if args.in_process and len(set(args.devices_list)) > 1:
         ap.error("--in-process measures one device count (the backend starts once)")
-    options = parse_options(args.option)
+    measured = (args.scaling_strategy if args.scaling else args.strategies).split(",")
+    options = parse_options(args.option, [m.strip() for m in measured])
     base = {"route": args.route, "tile": 1, "batch": args.batch, "chunk": args.chunk,
             "precision": args.precision, "repeats": args.repeats, "emitters": args.emitters,
             "options": options}

@@ -7,9 +7,18 @@ bs = load_script("benchmarks/bench_sweep.py")
 
 
 def test_options_are_toml_values_checked_as_a_sweep_files():
-    opts = bs.parse_options(["sustain=false", "n_iter = 3", "tau_E=30.5", "soc_ref=0.4"])
+    opts = bs.parse_options(["sustain=false", "n_iter = 3", "tau_E=30.5", "soc_ref=0.4"],
+                            ["baseline", "multilevel"])
     assert opts == {"sustain": False, "n_iter": 3, "tau_E": 30.5, "soc_ref": 0.4}
-    assert bs.parse_options([]) == {}
+    assert bs.parse_options([], ["baseline"]) == {}
+
+
+def test_an_option_no_measured_strategy_reads_is_refused():
+    # n_iter is multilevel's: measuring the A-ECMS alone with it would time what it ignores
+    with pytest.raises(SystemExit, match="n_iter: not an option of baseline") as e:
+        bs.parse_options(["n_iter=3"], ["baseline"])
+    assert "bench_sweep" in str(e.value)
+    assert bs.parse_options(["n_iter=3"], ["baseline", "multilevel"]) == {"n_iter": 3}
 
 
 @pytest.mark.parametrize("pair, says", [
@@ -21,7 +30,7 @@ def test_options_are_toml_values_checked_as_a_sweep_files():
 ])
 def test_a_bad_option_is_named(pair, says):
     with pytest.raises(SystemExit, match=says) as e:
-        bs.parse_options([pair])
+        bs.parse_options([pair], ["multilevel"])
     assert "bench_sweep" in str(e.value)
 
 
