@@ -139,8 +139,8 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("engine", "inertia_kg_m2"): ("I_e", 1.0, "nonneg"),
     ("motor", "efficiency"): ("eta_m", 1.0, "frac"),
     ("motor", "speed_max_rpm"): ("wm_max", RPM, "pos"),
-    ("motor", "torque_max_Nm"): ("tm_max", 1.0, "nonneg"),
-    ("motor", "power_max_W"): ("pm_max", 1.0, "nonneg"),
+    ("motor", "torque_max_Nm"): ("tm_max", 1.0, "motor"),
+    ("motor", "power_max_W"): ("pm_max", 1.0, "motor"),
     ("motor", "friction_lin_W_per_rad_s"): ("m0_lin", 1.0, "nonneg"),
     ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "nonneg"),
     ("motor", "inertia_kg_m2"): ("I_m", 1.0, "nonneg"),
@@ -175,6 +175,10 @@ _NUMBER_RULES = {
     # the battery's loss coefficient: Level 1's split divides by it (at 1e-320 a run's fuel
     # was NaN); below this a battery loses less than 1 W at 1 MW, lossless for any purpose
     "beta": (lambda x: x >= BETA_MIN, f"must be >= {BETA_MIN:g} (1/W)"),
+    # a hybrid's motor: at 0 it still turned (its friction drained the battery) and Level 2's
+    # costate ran to its bracket's end; the truck without it is the conventional strategy's
+    "motor": (lambda x: x > 0, "must be > 0 (the truck without its motor: the conventional "
+                               "strategy, or has_motor = 0)"),
     # plausible ranges where a unit mixed up runs on, silently wrong: a battery of 100 "J"
     # meant as kWh or MJ (whose dE_b vanishes in float64 at 1e30 J), a heating value in MJ/kg
     # (42.8 for diesel's 42.8e6 J/kg: a million times the fuel), a density in kg/m^3
@@ -190,7 +194,7 @@ _NUMBER_RULES = {
 def check_number(value: Any, kind: str, where: str, error: type = ValueError) -> float:
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
     (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, zero_one 0 or 1, beta >=
-    BETA_MIN, cruise >= SPEED_MIN_KMH, and the plausible ranges of capacity, lhv and
+    BETA_MIN, motor > 0, cruise >= SPEED_MIN_KMH, and the plausible ranges of capacity, lhv and
     density); else raises `error` naming
     `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):

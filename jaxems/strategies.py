@@ -106,10 +106,13 @@ class Options(NamedTuple):
     """Static options of the strategies (hashable; a change recompiles).
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
-    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share, dwell:
-    baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share, dwell,
+    ecms_horizon: baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
     battery already; soc_ref: the charge it holds, as a fraction of E_b_max with that share
-    counted, None: the trip's start, `ecms_params`; dwell: least steps between its switches);
+    counted, None: the trip's start, `ecms_params`; dwell: least time (s) between its switches;
+    ecms_horizon: the time (s) over which its one-step choice weighs a state's Hamiltonian
+    against the cost of switching into it, `ecms_controller`; by default the dwell, which a
+    switch commits the truck to);
     dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level 1 splits
     are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from
     E_b(t0) in dp-bound's terminal cost, beyond Level 2's costate (`bound_dp`); dp_attempts:
@@ -153,7 +156,8 @@ class Options(NamedTuple):
     kp: float = 5.0
     soc_ref: float | None = None
     ke_share: float = 0.05
-    dwell: int = 3
+    dwell: float = 3.0
+    ecms_horizon: float = 3.0
     dp_n_E: int = 101
     dp_lams: int = 48
     dp_penalty: float = 1.0
@@ -326,8 +330,10 @@ class EcmsParams(NamedTuple):
     kp: Any
     soc_ref: Any
     ke_share: Any
-    dwell: Any  # steps
+    dwell: Any  # s
     switch: sw.SwitchCostParams
+    dt: Any = 1.0  # the plant's time step (s)
+    horizon: Any = 3.0  # s over which a state's Hamiltonian (W) is weighed against a switch (J)
 
 
 def ecms_lambda(p: EcmsParams, vp, E_b, v):
@@ -337,9 +343,16 @@ def ecms_lambda(p: EcmsParams, vp, E_b, v):
 
 
 def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
-    """One-step DP: the current Hamiltonian plus the switching cost from the current state,
-    with a minimum dwell time between switches (as shift logic has), unless the current state
-    cannot serve (the plant's protection then switches anyway)."""
+    """One-step DP: each state's Hamiltonian over the payback horizon (H horizon, J) plus the
+    switching cost (J) from the current state, with a minimum dwell time (s) between switches
+    (as shift logic has), unless the current state cannot serve (the plant's protection then
+    switches anyway). A switch commits the truck to its new state for at least the dwell, so
+    its gain is weighed over that long by default (`Options.ecms_horizon`): weighed over one
+    second, a downshift that lets the motor recuperate a descent never paid for itself (on the
+    short track's descents the service brakes took 150-170 kW beside 20 kW of recuperation,
+    and from an empty battery the truck never recuperated). Both are times, not steps, so the
+    decisions do not change with the plant's step dt beyond its resolution (`since`: the
+    steps since the last switch)."""
     since = cstate  # steps since the last switch
     lam = ecms_lambda(p, vp, obs.E_b, obs.v)
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
@@ -348,14 +361,15 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     # (not `level1.braking_loss`: paid on the one step this DP sees, the recuperation lost to
     # a switch always outweighs the one step gained, and it would never switch into braking)
     C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
-    cost = jnp.where(tab.feasible, tab.H, jnp.inf).reshape(-1) + C
+    cost = jnp.where(tab.feasible, tab.H * p.horizon, jnp.inf).reshape(-1) + C
     i = jnp.argmin(cost)
-    i = jnp.where(jnp.isfinite(cost[i]) & (since >= p.dwell), i, s_cur)
+    dwelt = since * p.dt >= p.dwell * (1 - 1e-6)  # (rounding: 3 steps of 1/3 s are 1 s)
+    i = jnp.where(jnp.isfinite(cost[i]) & dwelt, i, s_cur)
     since = jnp.where(i == s_cur, since + 1, 0).astype(since.dtype)
     return since, pl.Command(mode=i // n_g, gear=i % n_g, lam=lam, P_b=jnp.nan)
 
 
-def ecms_params(vp, track: pl.Track, opts: Options, params) -> EcmsParams:
+def ecms_params(vp, track: pl.Track, opts: Options, params, dt) -> EcmsParams:
     """The A-ECMS baseline's `EcmsParams`. Its charge reference soc_ref, unless opts gives one,
     is what the trip starts with as its feedback counts it: (E_b(t0) + ke_share m v(t0)^2 / 2)
     / E_b_max, from the plant's initial state (no preview): the charge the trip started with
@@ -366,15 +380,17 @@ def ecms_params(vp, track: pl.Track, opts: Options, params) -> EcmsParams:
         soc_ref = (vp.soc0 * vp.E_b_max + opts.ke_share * 0.5 * vp.mass * v0**2) / vp.E_b_max
     else:
         soc_ref = jnp.asarray(opts.soc_ref)
+    dtype = jnp.asarray(vp.E_b_max).dtype
     return EcmsParams(lam0=jnp.asarray(opts.lam0), kp=jnp.asarray(opts.kp), soc_ref=soc_ref,
                       ke_share=jnp.asarray(opts.ke_share), dwell=jnp.asarray(opts.dwell),
-                      switch=params)
+                      switch=params, dt=jnp.asarray(dt, dtype),
+                      horizon=jnp.asarray(opts.ecms_horizon, dtype))
 
 
 def run_baseline(route, vp, dt, n_steps: int, opts: Options, params) -> Run:
     pred = level3(route, vp, dt, n_steps)
     track = pl.make_track(route, pred, opts.end_cap)
-    p = ecms_params(vp, track, opts, params)
+    p = ecms_params(vp, track, opts, params, dt)
     res = pl.run_plant(vp, track, ecms_controller, p, jnp.asarray(0, jnp.int32), ps.MO, 0,
                        plant_steps(n_steps, opts), dt)
     lam_first = res.trace.lam[0]
@@ -1084,12 +1100,13 @@ def make_options(base: Options | Mapping | None = None, strategies=None, /,
 # take hours (l2_pieces = 10**6 asked 9 TB of a (pieces x pieces) table on the short track),
 # where the figures settle far below it (l2_pieces 32-64, dp_n_E 101-801, n_iter 2-4, h1 5-20)
 _INT_OPTIONS = {"n_iter": (1, 20), "h1": (1, 600), "h2": (2, 86_400), "t2": (1, 3600),
-                "dp_n_E": (11, 2001), "dp_lams": (2, 512), "dwell": (0, 3600),
+                "dp_n_E": (11, 2001), "dp_lams": (2, 512),
                 "l2_pieces": (1, 1024), "mpc_pieces": (1, 1024), "dp_attempts": (1, 20)}
 _BOOL_OPTIONS = ("sustain", "guard_sides", "end_cap", "same_open_time", "level0_plan_power",
                  "trim_excursions")
 _REAL_OPTIONS = {
     "lam0": (None, 0.0, False, True), "kp": (0.0, None, False, False),
+    "dwell": (0.0, 3600.0, False, False), "ecms_horizon": (0.0, 3600.0, True, False),
     "soc_ref": (0.0, 1.0, False, False), "ke_share": (0.0, 1.0, False, False),
     "dp_penalty": (0.0, None, True, False), "plant_extra": (0.0, 10.0, False, False),
     "tau_E": (0.0, None, True, False), "eco_lambda_t": (0.0, None, False, False),
@@ -1108,7 +1125,8 @@ _ITERATION_OPTIONS = ("n_iter", "sustain", "guard_sides", "l2_pieces", "end_rese
                       *_PLAN_OPTIONS)
 STRATEGY_OPTIONS = {
     "conventional": _PLANT_OPTIONS,
-    "baseline": (*_PLANT_OPTIONS, "lam0", "kp", "soc_ref", "ke_share", "dwell"),
+    "baseline": (*_PLANT_OPTIONS, "lam0", "kp", "soc_ref", "ke_share", "dwell",
+                 "ecms_horizon"),
     "multilevel": (*_PLANT_OPTIONS, *_ITERATION_OPTIONS),
     "multilevel-mpc": (*_PLANT_OPTIONS, "h1", "h2", "t2", "mpc_pieces", "mpc_end_reserve",
                        "lam0"),

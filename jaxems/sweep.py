@@ -106,8 +106,8 @@ NO_BATTERY = ("conventional",)
 GRID_KEYS: dict[str, tuple[str, float, str]] = {
     "mass_kg": ("mass", 1.0, "pos"),
     "battery_MJ": ("E_b_max", 1e6, "pos"),
-    "motor_power_kW": ("pm_max", 1e3, "nonneg"),
-    "motor_torque_Nm": ("tm_max", 1.0, "nonneg"),
+    "motor_power_kW": ("pm_max", 1e3, "motor"),
+    "motor_torque_Nm": ("tm_max", 1.0, "motor"),
     "beta_per_W": ("beta", 1.0, "beta"),
     "engine_efficiency": ("eta_e", 1.0, "frac"),
     "initial_soc": ("soc0", 1.0, "unit"),

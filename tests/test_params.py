@@ -120,6 +120,8 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("driving", "cruise_speed_km_h", -85.0, "must be >= 1.8 km/h"),
         ("driving", "cruise_speed_km_h", 1.0, "must be >= 1.8 km/h"),
         ("battery", "loss_coefficient_per_W", 0.0, "must be >= 1e-12"),
+        ("motor", "power_max_W", 0.0, "must be > 0 .the truck without its motor"),
+        ("motor", "torque_max_Nm", 0.0, "must be > 0"),
         ("battery", "loss_coefficient_per_W", 1e-320, "must be >= 1e-12"),
         # units mixed up: a battery in kWh, a heating value in MJ/kg, a density in kg/m^3
         ("battery", "capacity_J", 100.0, "must be from 1e4 to 1e11 J"),
@@ -246,6 +248,7 @@ def test_stack_vehicles():
         ("we_max", 10.0, "must exceed we_min"),
         ("w_pred", 500.0, r"must be within \[we_min, we_max\]"),
         ("beta", 1e-15, "must be >= 1e-12"),
+        ("pm_max", 0.0, "must be > 0 .the truck without its motor: the conventional"),
         # the rules read a value in the file's unit: 1 km/h as m/s, the message in km/h
         ("v_cruise", 1.0 * KMH, r"must be >= 1.8 km/h.*\(got 1\.0"),
     ],
