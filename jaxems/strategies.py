@@ -358,8 +358,8 @@ def ecms_controller(p: EcmsParams, cstate, vp, obs: pl.Obs):
     tab = ps.mode_gear_split(vp, obs.P_req, obs.v_op, lam)
     n_g = vp.gear_ratio.shape[-1]
     s_cur = obs.mode * n_g + obs.gear
-    # (not `level1.braking_loss`: paid on the one step this DP sees, the recuperation lost to
-    # a switch always outweighs the one step gained, and it would never switch into braking)
+    # (not `level1.braking_loss`: this DP weighs a switch over its horizon only, not over the
+    # braking it serves; with one step weighed it would never have switched into braking)
     C = sw.switch_cost_matrix(vp, obs.v_op, obs.grade, lam, p.switch)[s_cur]
     cost = jnp.where(tab.feasible, tab.H * p.horizon, jnp.inf).reshape(-1) + C
     i = jnp.argmin(cost)
