@@ -106,13 +106,13 @@ class Options(NamedTuple):
     """Static options of the strategies (hashable; a change recompiles).
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
-    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share, dwell,
-    ecms_horizon: baseline A-ECMS (ke_share: share of the kinetic energy its charge feedback counts as in the
-    battery already; soc_ref: the charge it holds, as a fraction of E_b_max with that share
-    counted, None: the trip's start, `ecms_params`; dwell: least time (s) between its switches;
-    ecms_horizon: the time (s) over which its one-step choice weighs a state's Hamiltonian
-    against the cost of switching into it, `ecms_controller`; by default the dwell, which a
-    switch commits the truck to);
+    window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share,
+    dwell, ecms_horizon: baseline A-ECMS (ke_share: share of the kinetic energy its charge
+    feedback counts as in the battery already; soc_ref: the charge it holds, as a fraction of
+    E_b_max with that share counted, None: the trip's start, `ecms_params`; dwell: least time
+    (s) between its switches; ecms_horizon: the time (s) over which its one-step choice weighs
+    a state's Hamiltonian against the cost of switching into it, `ecms_controller`; 3 s, as
+    the dwell that a switch commits the truck to);
     dp_n_E: E_b grid points of dp-bound; dp_lams: number of costate values whose Level 1 splits
     are dp-bound's battery-power candidates; dp_penalty: fuel J per J of E_b(tf) away from
     E_b(t0) in dp-bound's terminal cost, beyond Level 2's costate (`bound_dp`); dp_attempts:
