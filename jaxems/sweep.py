@@ -454,9 +454,11 @@ def load_config(path: str | Path) -> SweepConfig:
         try:
             field, scale, kind = grid_field(key)
         except KeyError:
+            fields = [f for f in VehicleParams._fields  # those a grid may set by name
+                      if f not in USER_KEY and np.ndim(getattr(vehicle, f)) == 0]
             raise SweepError(f"{where}: unknown grid key {key!r} (known: "
                              f"{', '.join(GRID_KEYS)}, or a vehicle field: "
-                             f"{', '.join(VehicleParams._fields)})") from None
+                             f"{', '.join(fields)})") from None
         if np.ndim(getattr(vehicle, field)) != 0:
             raise SweepError(f"{where}: {field} is a curve, not a number; it cannot be a grid "
                              f"parameter")

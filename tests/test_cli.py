@@ -90,6 +90,23 @@ def test_interrupted_sweep_says_how_to_go_on(capsys, monkeypatch, tmp_path):
     assert code == 130 and "interrupted; finished chunks are kept" in err and "--resume" in err
 
 
+@pytest.mark.parametrize("status", [0, 1, 130])
+def test_the_process_ends_at_once_after_ctrl_c(monkeypatch, status):
+    """The script's entry: main's status as the process's; after Ctrl-C os._exit (no teardown
+    of the interpreter under XLA's compiler threads, which crashed with status 139 when a
+    compilation was interrupted), once the streams are flushed; otherwise sys.exit."""
+    import jaxems.cli as cli
+
+    calls = []
+    monkeypatch.setattr(cli, "main", lambda: status)
+    monkeypatch.setattr(cli.os, "_exit", lambda code: calls.append(("_exit", code)))
+    monkeypatch.setattr(cli.sys.stderr, "flush", lambda: calls.append(("flush",)))
+    with pytest.raises(SystemExit) as e:
+        cli.run()
+    assert e.value.code == status  # after the stub _exit returns, sys.exit follows
+    assert calls == ([("flush",), ("_exit", 130)] if status == 130 else [])
+
+
 def test_sweep_devices_are_capped(capsys, tmp_path):
     """--devices 1000 flooded stderr with XLA's rendezvous warnings and aborted after 70 s;
     refused before JAX starts (`sweep.DEVICES_MAX`)."""

@@ -30,6 +30,18 @@ def write(tmp_path, text, name="s.toml"):
     return p
 
 
+def test_unknown_grid_key_lists_the_keys_a_grid_may_set(tmp_path):
+    """The list names the user keys and the scalar vehicle fields a grid may set by name: not
+    those a user key sets (mass, E_b_max, ...: refused by name) nor the curves."""
+    with pytest.raises(sw.SweepError) as e:
+        sw.load_config(write(tmp_path, GOOD.replace("battery_MJ", "battery_kWh")))
+    fields = str(e.value).split("or a vehicle field: ")[1].rstrip(")").split(", ")
+    assert "mass_kg" in str(e.value) and "c_r" in fields and "has_motor" in fields
+    for refused in ("mass", "E_b_max", "soc0", "beta", "eta_e", "pm_max", "tm_max", "te_max",
+                    "gear_ratio"):
+        assert refused not in fields, refused
+
+
 def test_good_file_parses(tmp_path):
     cfg = sw.load_config(write(tmp_path, GOOD))
     assert [r.name for r in cfg.routes] == ["short_track"]
