@@ -1,5 +1,5 @@
-"""experiments/table7.py, table8.py, traces.py, charge_grid.py, resolution.py, mpc_gap.py,
-random_routes.py and plan_tracking.py: JSON structure, row arithmetic, figures.
+"""experiments/table7.py, table8.py, traces.py, charge_grid.py, option_grid.py, resolution.py,
+mpc_gap.py, random_routes.py and plan_tracking.py: JSON structure, row arithmetic, figures.
 
 Cheap configurations on the short track (it stands in for a VECTO route in table8 here); the
 scripts run in-process so that they share compilations with each other and with
@@ -18,6 +18,7 @@ from jaxems.strategies import simulate
 from repo_scripts import load_script
 
 LHV_J_PER_KG, DENSITY_KG_PER_L = 42.8e6, 0.832  # data/vehicles/reference_truck.toml [fuel]
+VP25 = with_overrides(load_vehicle(), mass_kg=25000.0)
 
 
 def _script(name):
@@ -168,6 +169,31 @@ def test_charge_grid_json_and_the_baselines_balance(capsys):
     assert "--socs: expected comma-separated numbers" in capsys.readouterr().err
     assert grid.main(["--socs", "1.5", "--strategies", "baseline"]) == 1
     assert "soc0: must be in [0, 1]" in capsys.readouterr().err
+
+
+def test_option_grid_rows_are_the_runs_at_each_value(capsys):
+    """option_grid: a row per (option value, route) whose figures are the plain runs' at that
+    value (corrected fuel, charge, trip against Level 3); bad --set values named."""
+    grid = _script("option_grid")
+    d, err = main_json(grid, ["--strategy", "baseline", "--set", "ecms_horizon=1,3",
+                              "--routes", "short_track", "--masses", "25000",
+                              "--batteries", "4"], capsys)
+    assert "option_grid: {'ecms_horizon': 1}" in err
+    assert [r["options"] for r in d["rows"]] == [{"ecms_horizon": 1}, {"ecms_horizon": 3}]
+    for row in d["rows"]:
+        r = simulate("short_track", VP25, "baseline", **row["options"])
+        assert row["runs"] == 1 and row["not_ok"] == 0 and row["route"] == "short_track"
+        assert row["fuel_corrected_J"] == pytest.approx(r["fuel_corrected_J"], rel=1e-9)
+        assert row["off_charge"] == int(abs(r["delta_Eb_J"]) > 0.01 * float(VP25.E_b_max))
+        pct = 100 * (r["trip_time_s"] / r["level3_trip_time_s"] - 1)
+        assert row["trip_pct_max"] == pytest.approx(pct, abs=1e-9)
+        assert row["trip_long"] == int(pct > 1.0)
+    assert "ecms_horizon=3" in grid.format_table(d) and "all" in grid.format_table(d)
+    for bad, says in (["n_iter=2", "n_iter: not an option of baseline"],
+                      ["ecms_horizon=0", "ecms_horizon: must be a finite number > 0"],
+                      ["ecms_horizon", "expected NAME=VALUE"]):
+        assert grid.main(["--strategy", "baseline", "--set", bad]) == 1
+        assert says in capsys.readouterr().err, bad
 
 
 def test_resolution_summary_against_plain_arithmetic(capsys):
