@@ -33,7 +33,7 @@ config.update("jax_enable_x64", True)
 
 from jaxems.cli import comma_list, print_result  # noqa: E402
 from jaxems.params import load_vehicle, stack_vehicles, with_overrides  # noqa: E402
-from jaxems.report import CHARGE_SHARE, TRIP_SHARE, off_charge  # noqa: E402
+from jaxems.report import CHARGE_SHARE, TRIP_SHARE, off_charge, trip_vs_level3_pct  # noqa: E402
 from jaxems.strategies import check_strategy, simulate_batch  # noqa: E402
 from jaxems.sweep import option_pairs  # noqa: E402
 
@@ -70,7 +70,6 @@ def run_grid(strategy: str, sets: list[tuple[str, list]], routes=DEFAULT_ROUTES,
     base = load_vehicle(vehicle)
     grid = [(m, b) for m in masses for b in batteries]
     vps = stack_vehicles([with_overrides(base, mass_kg=m, battery_MJ=b) for m, b in grid])
-    size = np.array([b * 1e6 for _, b in grid])
     names = [n for n, _ in sets]
     rows = []
     for combo in itertools.product(*(v for _, v in sets)):
@@ -79,16 +78,14 @@ def run_grid(strategy: str, sets: list[tuple[str, list]], routes=DEFAULT_ROUTES,
             t = time.perf_counter()
             out = simulate_batch(route, vps, strategy, options=opts)
             ok = out["status"] == "ok"
-            t3 = out["level3_trip_time_s"]
-            long = ok & (out["trip_time_s"] > (1.0 + TRIP_SHARE) * t3)
+            pct = trip_vs_level3_pct(out["trip_time_s"], out["level3_trip_time_s"])
             rows.append({
                 "options": opts, "route": route, "runs": len(grid),
                 "not_ok": int(np.sum(~ok)),
                 "fuel_corrected_J": _num(np.sum(out["fuel_corrected_J"][ok])),
-                "off_charge": int(np.sum(ok & off_charge(out["delta_Eb_J"], size))),
-                "trip_long": int(np.sum(long)),
-                "trip_pct_max": (_num(np.max(100 * (out["trip_time_s"] / t3 - 1)[ok]))
-                                 if np.any(ok) else None),
+                "off_charge": int(np.sum(ok & off_charge(out["delta_Eb_J"], vps.E_b_max))),
+                "trip_long": int(np.sum(ok & (pct > 100 * TRIP_SHARE))),
+                "trip_pct_max": _num(np.max(pct[ok])) if np.any(ok) else None,
             })
             print(f"option_grid: {opts} {route:16s} {rows[-1]['fuel_corrected_J'] / 1e6:9.2f} MJ, "
                   f"{rows[-1]['off_charge']} off charge, {rows[-1]['trip_long']} long "

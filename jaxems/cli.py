@@ -687,4 +687,4 @@ def run() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run()

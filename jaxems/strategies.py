@@ -332,8 +332,8 @@ class EcmsParams(NamedTuple):
     ke_share: Any
     dwell: Any  # s
     switch: sw.SwitchCostParams
-    dt: Any = 1.0  # the plant's time step (s)
-    horizon: Any = 3.0  # s over which a state's Hamiltonian (W) is weighed against a switch (J)
+    dt: Any  # the plant's time step (s)
+    horizon: Any  # s over which a state's Hamiltonian (W) is weighed against a switch (J)
 
 
 def ecms_lambda(p: EcmsParams, vp, E_b, v):

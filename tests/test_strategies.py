@@ -253,7 +253,8 @@ def test_ecms_feedback_counts_the_kinetic_energy(E, v, ke, kp):
     """The baseline's costate: the plain formula (NumPy) at the battery energy plus the share
     ke of the kinetic energy, within the Level 2 bracket, and never more eager to charge when
     the battery is fuller or the truck faster."""
-    p = S.EcmsParams(lam0=-2.2, kp=kp, soc_ref=0.5, ke_share=ke, dwell=3.0, switch=None)
+    p = S.EcmsParams(lam0=-2.2, kp=kp, soc_ref=0.5, ke_share=ke, dwell=3.0, switch=None,
+                     dt=1.0, horizon=3.0)
     m, size = float(VP.mass), float(VP.E_b_max)
     want = np.clip(-2.2 + kp * ((E + ke * 0.5 * m * v**2) / size - 0.5), -6.0, -0.3)
     lam = float(S.ecms_lambda(p, VP, E, v))
