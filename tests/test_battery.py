@@ -321,9 +321,19 @@ def test_minimal_switching_known_cases():
     assert E.min() >= 20 - 1e-6 and E.max() <= 80 + 1e-6 and abs(E[-1] - 50) < 1e-6
     # a switch advanced so that the limit is just touched (Figure 15): E_b reaches E_min
     assert abs(E.min() - 20) < 1e-6
-    # impossible: net change must be +60 but B+ gives at most +100... within [0, 40] no
-    s = b.minimal_switching(up, dn, 20.0, 20.0, 0.0, 1.0, 1e-9)
+    # impossible, from a start within the limits: the end out of reach (both trajectories
+    # charge, at least +50 over the window, where the end asks for 0)
+    s = b.minimal_switching(up, 0.5 * up, 50.0, 50.0, 0.0, 200.0, 1e-9)
     assert not bool(s.feasible)
+    # the end within reach (-50 forced, then up to +50), but both trajectories discharge 50
+    # first, which from 20 crosses the lower limit
+    forced = np.where(np.arange(T) < 50, -1.0, 1.0)
+    s = b.minimal_switching(forced, dn, 20.0, 20.0, 0.0, 100.0, 1e-9)
+    assert not bool(s.feasible)
+    # the same from 60: it reaches 10 and back (one switch or none: the end is B+'s own)
+    s = b.minimal_switching(forced, dn, 60.0, 60.0, 0.0, 100.0, 1e-9)
+    assert bool(s.feasible) and abs(float(s.E_b[-1]) - 60.0) < 1e-6
+    assert float(np.min(s.E_b)) >= -1e-6
 
 
 @settings(max_examples=30, deadline=None)

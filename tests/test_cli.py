@@ -242,12 +242,25 @@ def test_python_dash_m_and_experiment():
         assert abs(s["P_d_kW"] - paper) <= 0.05 * abs(paper)
 
 
-def test_demo_runs(tmp_path):
+def test_demo_runs(tmp_path, capsys):
+    """The demo's Level 3 part: one row and one plot a bundled route, each row the route's
+    length (read as plain CSV from its file), stops and a feasible prediction."""
     from jaxems import demo
+    from jaxems.io import list_routes, route_name
 
     assert demo.main(["--out", str(tmp_path), "--level3-only"]) == 0
     pngs = sorted(p.name for p in tmp_path.glob("*.png"))
     assert "level3_short_track.png" in pngs and len(pngs) == 4
+    rows = {ln.split()[0]: ln.split() for ln in capsys.readouterr().out.splitlines()
+            if ln.split() and ln.split()[0] in {route_name(p) for p in list_routes()}}
+    assert len(rows) == 4
+    for path in list_routes():
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+        cells = [ln.split(",") for ln in lines if not ln.startswith(("#", "<", "distance"))]
+        row = rows[route_name(path)]
+        assert float(row[1]) == pytest.approx(float(cells[-1][0]) / 1000, abs=0.005), row
+        stops = sum(1 for c in cells if float(c[3]) > 0)
+        assert int(row[5]) == stops and row[-1] == "yes", row
 
 
 def test_cache_dir_from_the_environment(monkeypatch, tmp_path):

@@ -38,6 +38,17 @@ def test_bundled_vecto_cycles_match_their_attribution(name, km, gmin, gmax, stop
     assert info["length_m"] / 1000 == pytest.approx(km, abs=0.05)
     # cell means can only narrow the range of the source rows
     assert gmin - 0.01 <= info["gradient_min_pct"] and info["gradient_max_pct"] <= gmax + 0.01
+    # and they keep its climbs: the rise over every cell is the source's, read as plain CSV
+    # (<s>,<v>,<grad>,<stop>; a row's gradient holds up to the next row)
+    rows = np.array([[float(x) for x in line.split(",")] for line in
+                     (VECTO / f"{name}.vdri").read_text().splitlines()[1:] if line.strip()])
+    rise_rows = np.concatenate([[0.0], np.cumsum(rows[:-1, 2] / 100 * np.diff(rows[:, 0]))])
+    n = n_nodes(r)
+    s_nodes = np.minimum(np.arange(n) * float(r.ds), float(r.length))
+    rise = np.concatenate([[0.0], np.cumsum(np.asarray(r.grade)[: n - 1] * np.diff(s_nodes))])
+    np.testing.assert_allclose(rise, np.interp(s_nodes, rows[:, 0], rise_rows), rtol=0,
+                               atol=1e-6)
+    assert np.ptp(rise) > 20.0  # (hills of 50-340 m: the check is not of a flat route)
     assert info["stops"] == stops and info["stop_time_s"] == stop_s
     assert info["starts_stopped"] and info["ends_stopped"]
     assert (VECTO / "LICENSE.txt").is_file() and "EUPL" in (VECTO / "LICENSE.txt").read_text()

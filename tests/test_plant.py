@@ -69,7 +69,14 @@ def run(vp, lam, end_cap=True):
 
 # the issue asks the balance to close within 0.1 %; in float64 it closes to rounding, and
 # the smallest loss it counts (the clutch's slip, about 7e-4 of the input on the short
-# track) would pass unnoticed at 0.1 %: the tests hold it to rounding
+# track) would pass unnoticed at 0.1 %: the tests hold it to rounding. What the balance
+# checks is the accounting: each loss is a difference of the step's powers (fuel - engine,
+# engine - clutch output, battery - motor, ...), so a term left out or counted twice, power
+# that reaches the wheels by no counted path, or a step's motion that its wheel power does not
+# make breaks it; a wrong model (an efficiency, the fuel map, the slip) does not. The models are
+# checked against the plant written as a loop with its own NumPy physics
+# (`test_plant_equals_its_loop`: every power of every step and every loss's total) and the
+# road work against the route (`test_road_work_is_the_gradient_of_the_distance_covered`)
 BALANCE_RTOL = 1e-9
 
 

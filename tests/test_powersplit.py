@@ -50,7 +50,7 @@ def test_split_matches_brute_force(P_d, v, lam):
     _check(VP, P_d, v, lam)
 
 
-@settings(max_examples=5)
+@settings(max_examples=30)
 @given(P_d=st.floats(-2e5, 3e5), v=st.floats(0.3, 28.0), lam=st.floats(-3.0, -1.2))
 def test_conventional_split_matches_brute_force(P_d, v, lam):
     _check(CONV, P_d, v, lam)

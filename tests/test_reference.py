@@ -75,7 +75,7 @@ def test_plan_agrees_with_kernels(name):
     assert np.all(s[~m] == s[np.flatnonzero(m)[-1]])  # masked steps keep the state
 
 
-@settings(max_examples=8)
+@settings(max_examples=20)
 @given(P_d=st.floats(-3e5, 4e5), v=st.floats(0.3, 27.0), lam=st.floats(-4.0, -0.5))
 def test_refined_split_is_exact(P_d, v, lam):
     """The refined grid search reaches the kernel's exact minimum and never does worse than
