@@ -157,18 +157,88 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
         )
 
 
+def _route_leaves(route: Route) -> dict | None:
+    """The leaves of `route` as float64 arrays (the mask as it is), None where one is traced
+    (under `jit`); a leaf that is not numbers is a `RouteError` naming it."""
+    import jax  # (here: the readers need no JAX)
+
+    if not isinstance(route, Route):
+        raise RouteError(f"route: expected a Route (got {type(route).__name__})")
+    if any(isinstance(getattr(route, k), jax.core.Tracer) for k in Route._fields):
+        return None
+    leaves = {}
+    for k in Route._fields:
+        x = getattr(route, k)
+        if x is None or isinstance(x, str | bytes):
+            raise RouteError(f"route {k}: must be an array of numbers (got {type(x).__name__})")
+        try:
+            a = np.asarray(x)
+            leaves[k] = a if k == "mask" else a.astype(np.float64)
+        except (TypeError, ValueError) as e:
+            raise RouteError(f"route {k}: must be an array of numbers (got {type(x).__name__}: "
+                             f"{e})") from None
+        if leaves[k].dtype == object:
+            raise RouteError(f"route {k}: must be an array of numbers (got {type(x).__name__})")
+    return leaves
+
+
+def _check_route_shapes(leaves: dict) -> None:
+    """The leaves fit together (see the module docstring): grade, vmax, stop and mask (..., N)
+    alike with N >= 2, ds and length of shape (...), and a boolean mask that keeps a prefix of
+    at least 2 nodes (the padding follows them); else a `RouteError`."""
+    shape = leaves["grade"].shape
+    if len(shape) < 1 or shape[-1] < 2:
+        raise RouteError(f"route grade: must be an array of at least 2 nodes (got shape {shape})")
+    for k in ("vmax", "stop", "mask"):
+        if leaves[k].shape != shape:
+            raise RouteError(f"route {k}: must have grade's shape {shape} (got {leaves[k].shape})")
+    for k in ("ds", "length"):
+        if leaves[k].shape != shape[:-1]:
+            raise RouteError(f"route {k}: must have shape {shape[:-1]} (one a route; got "
+                             f"{leaves[k].shape})")
+    mask = leaves["mask"]
+    if mask.dtype != np.bool_:
+        raise RouteError(f"route mask: must be booleans (got dtype {mask.dtype})")
+    n = mask.sum(axis=-1)
+    prefix = np.arange(shape[-1]) < n[..., None]
+    for bad, why in ((n < 2, "must keep at least 2 nodes"),
+                     (np.any(mask != prefix, axis=-1), "must keep the first nodes (the padding, "
+                      "False, follows them)")):
+        if np.any(bad):
+            at = np.argwhere(bad)[0] if bad.ndim else ()
+            idx = f"[{', '.join(str(int(i)) for i in at)}]" if len(at) else ""
+            raise RouteError(f"route mask{idx}: {why} (it keeps {int(n[tuple(at)])} of "
+                             f"{shape[-1]})")
+
+
+def _check_route_length(leaves: dict) -> None:
+    """length = (n - 1) ds, n the kept nodes (ds and length checked on their own first)."""
+    want = (leaves["mask"].sum(axis=-1) - 1) * leaves["ds"]
+    with np.errstate(invalid="ignore"):
+        bad = ~(np.abs(leaves["length"] - want) <= 1e-6 * np.maximum(np.abs(want), 1.0))
+    if np.any(bad):
+        at = tuple(np.argwhere(bad)[0]) if bad.ndim else ()
+        idx = f"[{', '.join(str(int(i)) for i in at)}]" if at else ""
+        raise RouteError(f"route length{idx}: must be (kept nodes - 1) * ds = "
+                         f"{float(want[at]):.6g} m (got {float(leaves['length'][at])!r})")
+
+
 def check_route(route: Route) -> Route:
     """`route` where its arrays are what a route file gives (for routes built or changed in
-    Python; files are checked as they load): ds finite and > 0, length in LENGTH_RANGE_M, and
-    on every node the mask keeps a finite gradient within +-GRADE_MAX_PCT, a speed limit in
-    [SPEED_MIN_KMH, SPEED_MAX_KMH] and a standstill time in [0, STOP_MAX_S]; else a
-    `RouteError` naming the field and the node (in a batch, [route, node]). Traced leaves
-    (under `jit`) are left to a concrete call."""
-    try:
-        leaves = {k: np.asarray(getattr(route, k), dtype=np.float64) for k in Route._fields}
-    except TypeError:  # a tracer
+    Python; files are checked as they load): arrays of numbers whose shapes fit together
+    (`_check_route_shapes`: a kept prefix of at least 2 nodes), length = (n - 1) ds, ds finite
+    and > 0, length in LENGTH_RANGE_M, and on every node the mask keeps a finite gradient
+    within +-GRADE_MAX_PCT, a speed limit in [SPEED_MIN_KMH, SPEED_MAX_KMH] and a standstill
+    time in [0, STOP_MAX_S]; else a `RouteError` naming the field and the node (in a batch,
+    [route, node]). Traced leaves (under `jit`) are left to a concrete call. Returns the route
+    with every leaf an array (a list or a number made a NumPy array)."""
+    leaves = _route_leaves(route)
+    if leaves is None:
         return route
-    keep = leaves["mask"] != 0
+    if not all(hasattr(x, "shape") and hasattr(x, "dtype") for x in route):
+        route = Route(*(x if hasattr(x, "shape") and hasattr(x, "dtype") else np.asarray(x)
+                        for x in route))
+    keep = leaves["mask"]
     rules = {
         "ds": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m", True),
         "length": (lambda x: (x >= LENGTH_RANGE_M[0]) & (x <= LENGTH_RANGE_M[1]),
@@ -182,6 +252,7 @@ def check_route(route: Route) -> Route:
         "stop": (lambda x: (x >= 0) & (x <= STOP_MAX_S),
                  f"must be a standstill time from 0 to {STOP_MAX_S:g} s", keep),
     }
+    _check_route_shapes(leaves)
     for field, (ok, why, where) in rules.items():
         x = leaves[field]
         with np.errstate(invalid="ignore"):
@@ -190,6 +261,7 @@ def check_route(route: Route) -> Route:
             at = np.argwhere(bad)[0]
             idx = f"[{', '.join(str(int(i)) for i in at)}]" if at.size else ""
             raise RouteError(f"route {field}{idx}: {why} (got {float(x[tuple(at)])!r})")
+    _check_route_length(leaves)
     return route
 
 

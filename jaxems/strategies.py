@@ -88,7 +88,7 @@ from .plan import (
     plant_drift,
     sustaining_level1,
 )
-from .route import Route, check_route
+from .route import Route, RouteError, check_route
 from .xla import jit
 
 STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bound",
@@ -919,7 +919,11 @@ def named_route(route, name: str | None = None) -> tuple[str, Route]:
     """(the name results carry, the checked `Route`) of a route argument (`route_arg`): name,
     else the file's stem, else "route" for a `Route` built in Python."""
     if isinstance(route, Route):
-        return name or "route", check_route(route)
+        route = check_route(route)
+        if np.ndim(route.ds) != 0:
+            raise RouteError(f"route: one route expected (got a batch of {np.shape(route.ds)[0]} "
+                             "routes: run them one at a time, or `sweep` them)")
+        return name or "route", route
     if not isinstance(route, str | os.PathLike):
         raise TypeError(f"route: expected a Route, a file path or a bundled route's name (got "
                         f"{type(route).__name__})")

@@ -109,7 +109,10 @@ def test_grid_against_brute_force(spec, ds):
     s_rows = np.array([row.s_m for row in rs]) - rs[0].s_m
     for i in range(n):
         near = s_rows[(s_rows > x[i] - dsr) & (s_rows < x[i] + dsr)]  # every segment that starts
-        p = np.clip(np.concatenate([x[i] + probe * dsr, near]), 0, L * (1 - 1e-12))
+        # and every one that ends within the cells, however little of it lies in them (a
+        # segment ending 0.05 m into a 24 m cell fell between the probes)
+        ends = near[near - 1e-7 > x[i] - dsr] - 1e-7
+        p = np.clip(np.concatenate([x[i] + probe * dsr, near, ends]), 0, L * (1 - 1e-12))
         assert r.vmax[i] == pytest.approx(limit(p).min(), abs=1e-9)
     # stops: at the node nearest each stop row, durations add up
     stop_ref = np.zeros(n)
@@ -267,3 +270,55 @@ def test_check_route_names_the_field_and_the_node(field, node, value, why):
     padded = np.array(r.grade, dtype=float)
     padded[~np.asarray(r.mask)] = np.nan  # beyond the route: not read, not checked
     check_route(r._replace(grade=padded))
+
+
+def _hole(mask):
+    m = np.array(mask)
+    m[50:60] = False
+    return m
+
+
+@pytest.mark.parametrize(
+    "change, field, why",
+    [
+        (lambda r, N: {"mask": np.zeros(N, bool)}, "mask", "at least 2 nodes"),
+        (lambda r, N: {"mask": np.arange(N) < 1}, "mask", "at least 2 nodes"),
+        (lambda r, N: {"mask": _hole(r.mask)}, "mask", "first nodes"),
+        (lambda r, N: {"mask": np.asarray(r.mask, float)}, "mask", "booleans"),
+        (lambda r, N: {"length": float(r.length) / 2}, "length", r"\(kept nodes - 1\) \* ds"),
+        (lambda r, N: {"ds": 1.0}, "length", r"\(kept nodes - 1\) \* ds = 106 m"),
+        (lambda r, N: {"ds": np.full(N, float(r.ds))}, "ds", "shape"),
+        (lambda r, N: {"vmax": np.full(100, 5.0)}, "vmax", "grade's shape"),
+        (lambda r, N: {k: np.zeros(0) for k in ("grade", "vmax", "stop")}
+         | {"mask": np.zeros(0, bool)}, "grade", "at least 2 nodes"),
+        (lambda r, N: {"grade": None}, "grade", "array of numbers"),
+        (lambda r, N: {"stop": "abc"}, "stop", "array of numbers"),
+    ],
+)
+def test_check_route_holds_the_arrays_together(change, field, why):
+    """A route built or changed in Python whose arrays do not fit together (no nodes kept, a
+    hole in the mask, a length that is not its nodes' span, shapes apart, leaves that are not
+    numbers) is a RouteError naming the field, at the API too; before, each of these ran to a
+    result marked ok (half a route's fuel for half its length) or failed inside JAX."""
+    import jaxems
+
+    r = jaxems.load_route("short_track")
+    bad = r._replace(**change(r, r.grade.shape[0]))
+    with pytest.raises(RouteError, match=rf"^route {field}(\[\d+\])?: .*{why}"):
+        check_route(bad)
+    with pytest.raises(RouteError, match=rf"^route {field}"):
+        jaxems.simulate(bad, strategy="conventional")
+
+
+def test_check_route_takes_lists_and_the_api_one_route():
+    """Leaves given as lists are made arrays (they ran into JAX as pytrees of numbers); a
+    batch of routes where the API runs one is refused by name."""
+    import jaxems
+
+    r = jaxems.load_route("short_track")
+    as_lists = r._replace(grade=list(np.asarray(r.grade)), ds=float(r.ds))
+    got = check_route(as_lists)
+    assert isinstance(got.grade, np.ndarray) and got.grade.shape == r.grade.shape
+    np.testing.assert_array_equal(got.grade, r.grade)
+    with pytest.raises(RouteError, match="^route: one route expected"):
+        jaxems.simulate(pad_routes([r, r]), strategy="conventional")

@@ -433,7 +433,7 @@ def predict_velocity(
     if np.ndim(route.ds) != 0 or np.ndim(vehicle.mass) != 0:
         raise ValueError("predict_velocity takes one route and one vehicle; use predict_batch")
     check_vehicle(vehicle)
-    check_route(route)
+    route = check_route(route)
     N = np.shape(route.grade)[-1]
     prof = _profile_jit(route, vehicle, _w_pred_array(vehicle, w_pred, N))
     trip = float(prof.trip_time)
@@ -461,7 +461,7 @@ def _paired_batch(routes, vehicles, w_pred, name: str, single: str):
     if not isinstance(vehicles, VehicleParams):
         vehicles = stack_vehicles(list(vehicles))
     check_vehicle(vehicles)
-    check_route(routes)
+    routes = check_route(routes)
     br = _batch_size(routes.ds)
     bv = _batch_size(vehicles.mass)
     if br is None and bv is None:
