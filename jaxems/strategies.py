@@ -186,7 +186,9 @@ class Metrics(NamedTuple):
     check reads trip_time_s (`report.trip_long`). level2_status: the flags of the last plan's
     Level 2 (`levels.battery.STATUS_NAMES`; 0 converged, PIECES_EXHAUSTED: its `l2_pieces`
     ran out with the battery's limits still violated) for the strategies that iterate
-    (multilevel, multilevel-eco); NO_LEVEL2 for the others."""
+    (multilevel, multilevel-eco); NO_LEVEL2 for the others. A run that did not reach the
+    route's end (status UNFINISHED) has no trip time: NaN (null in JSON), and its fuel and
+    battery figures are over the steps it ran."""
 
     length_m: Any
     trip_time_s: Any
@@ -259,7 +261,7 @@ def _metrics(res: pl.PlantResult, pred: l3.Prediction, vp, lam_b, status,
     status = status | jnp.where(pred.feasible, OK, INFEASIBLE_ROUTE)
     status = status | jnp.where(res.final.done, OK, UNFINISHED)
     return Metrics(
-        length_m=pred.length, trip_time_s=t.trip_time,
+        length_m=pred.length, trip_time_s=jnp.where(res.final.done, t.trip_time, jnp.nan),
         level3_trip_time_s=jnp.asarray(pred.trip_time, E.dtype), fuel_J=t.fuel,
         delta_Eb_J=res.final.E_b - res.E_b0,
         Eb_min_J=jnp.minimum(jnp.min(E), res.final.E_b),
@@ -997,9 +999,10 @@ class Result:
         return out
 
     def trip_trace(self) -> pl.Trace:
-        """The plant's trace over the trip's steps (those that start before its end), as NumPy
-        arrays."""
-        live = np.asarray(self.trace.t) < self["trip_time_s"]
+        """The plant's trace over the trip's steps (those that start before its end; every step
+        the plant ran where it did not reach the end), as NumPy arrays."""
+        t_end = self["trip_time_s"]
+        live = np.asarray(self.trace.t) < (t_end if np.isfinite(t_end) else np.inf)
         return jax.tree_util.tree_map(lambda x: np.asarray(x)[live], self.trace)
 
     def trace_columns(self) -> dict[str, np.ndarray]:

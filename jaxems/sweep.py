@@ -104,7 +104,7 @@ NO_BATTERY = ("conventional",)
 
 # User-facing grid keys (units in the name) -> (VehicleParams field, scale to SI, check).
 GRID_KEYS: dict[str, tuple[str, float, str]] = {
-    "mass_kg": ("mass", 1.0, "pos"),
+    "mass_kg": ("mass", 1.0, "mass"),
     "battery_MJ": ("E_b_max", 1e6, "pos"),
     "motor_power_kW": ("pm_max", 1e3, "motor"),
     "motor_torque_Nm": ("tm_max", 1.0, "motor"),

@@ -190,7 +190,7 @@ def test_predict_vehicle_file(capsys, tmp_path):
         (["route", "{tmp}/bad.vdri"], "line 3, column <v>: not a number"),
         (["predict", "{tmp}/missing.vdri"], "no such file"),
         (["predict", "no_such_route"], "no such route file"),
-        (["predict", "short_track", "--mass", "-5"], "mass_kg: must be > 0"),
+        (["predict", "short_track", "--mass", "-5"], "mass_kg: must be from 1000 to 200000 kg"),
         (["predict", "short_track", "--vehicle", "nope"], "no such vehicle file"),
         (["predict", "short_track", "--vehicle", "{tmp}/v.toml"], "vehicle.mass_kg: missing"),
         (["route", "{tmp}/empty.csv"], "empty file"),

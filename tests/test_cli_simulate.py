@@ -156,7 +156,7 @@ def test_simulate_registered():
     "args,words",
     [
         (["--strategy", "greedy"], "strategy: unknown 'greedy'"),
-        (["--mass", "-5"], "mass_kg: must be > 0"),
+        (["--mass", "-5"], "mass_kg: must be from 1000 to 200000 kg"),
         (["--battery-MJ", "0"], "battery_MJ: must be > 0"),
         (["--initial-soc", "1.5"], "initial_soc: must be in [0, 1]"),
         (["--n-iter", "0"], "--n-iter: must be a whole number >= 1"),
@@ -180,7 +180,7 @@ def test_simulate_bad_options_in_process(capsys, args, words):
     "args,words",
     [
         (["short_track", "--strategy", "greedy"], "unknown 'greedy'"),
-        (["short_track", "--mass", "-5"], "mass_kg: must be > 0"),
+        (["short_track", "--mass", "-5"], "mass_kg: must be from 1000 to 200000 kg"),
         (["short_track", "--battery-MJ", "0"], "battery_MJ: must be > 0"),
         (["no_such_dir/no_such_route.vdri"], "no such file"),
     ],

@@ -103,8 +103,10 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
 @pytest.mark.parametrize(
     "section,key,value,why",
     [
-        ("vehicle", "mass_kg", -1.0, "must be > 0"),
-        ("vehicle", "mass_kg", 0.0, "must be > 0"),
+        ("vehicle", "mass_kg", -1.0, "must be from 1000 to 200000 kg"),
+        ("vehicle", "mass_kg", 0.0, "must be from 1000 to 200000 kg"),
+        ("vehicle", "mass_kg", 25.0, "must be from 1000 to 200000 kg"),  # tonnes typed as kg
+        ("vehicle", "mass_kg", 1e9, "must be from 1000 to 200000 kg"),
         ("vehicle", "mass_kg", "heavy", "expected a number"),
         ("vehicle", "mass_kg", True, "expected a number"),
         ("vehicle", "mass_kg", float("nan"), "finite"),
@@ -240,7 +242,7 @@ def test_stack_vehicles():
 @pytest.mark.parametrize(
     "field,value,why",
     [
-        ("mass", -1.0, "must be > 0"),
+        ("mass", -1.0, "must be from 1000 to 200000 kg"),
         ("soc0", 1.5, r"must be in \[0, 1\]"),
         ("eta_e", 1.2, r"must be in \(0, 1\]"),
         ("c_r", -0.001, "must be >= 0"),
@@ -289,5 +291,5 @@ def test_host_apis_check_the_vehicle_before_compiling():
         "level1_full": lambda: level1.level1_full(bad, z, v, z, -2.0, 1.0),
     }
     for call in calls.values():
-        with pytest.raises(VehicleError, match=r"^mass(\[1\])?: must be > 0"):
+        with pytest.raises(VehicleError, match=r"^mass(\[1\])?: must be from 1000 to 200000 kg"):
             call()

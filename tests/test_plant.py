@@ -289,10 +289,22 @@ def test_vmap_equals_loop():
 
 
 def test_unfinished_route_is_reported():
-    # a truck that accelerates at 0.02 m/s^2 cannot finish within the plant's steps
-    res = run(VP.replace(a_max=0.02), -2.2)
+    """A truck that accelerates at 0.02 m/s^2 cannot finish within the plant's steps: the run
+    reports no trip time (NaN, null in JSON; it reported 0 s) and status unfinished, and its
+    time series keeps every step it ran (it kept none: the steps before a trip time of 0)."""
+    vp = VP.replace(a_max=0.02)
+    res = run(vp, -2.2)
     assert not bool(res.final.done)
     assert float(res.final.tot.trip_time) == 0.0
+    m = S._metrics(res, PRED, vp, -2.2, S.OK)
+    assert np.isnan(float(m.trip_time_s)) and int(m.status) & S.UNFINISHED
+    assert float(m.fuel_J) == float(res.final.tot.fuel) > 0  # over the steps it ran
+    r = S.Result(route="route", strategy="conventional", fields=m._asdict(), trace=res.trace,
+                 prediction=PRED, plant=res)
+    assert len(r.trace_columns()["t_s"]) == N_PLANT
+    assert r.as_dict()["trip_time_s"] != r.as_dict()["trip_time_s"]  # NaN
+    done = S._metrics(run(VP, -2.2), PRED, VP, -2.2, S.OK)
+    assert float(done.trip_time_s) > 0 and int(done.status) == S.OK
 
 
 @settings(max_examples=40, deadline=None)

@@ -63,8 +63,8 @@ def test_good_file_parses(tmp_path):
         (GOOD.split("[grid]")[0] + "[grid]\n", r"s\.toml: grid: empty"),
         (GOOD.split("[grid]")[0], r"s\.toml: grid: empty"),
         (GOOD.replace("[2, 4]", "[]"), r"grid\.battery_MJ: empty list"),
-        (GOOD.replace("20000, 30000", "0, 30000"), r"grid\.mass_kg\[0\]: must be > 0"),
-        (GOOD.replace("20000, 30000", "-5, 30000"), r"grid\.mass_kg\[0\]: must be > 0"),
+        (GOOD.replace("20000, 30000", "0, 30000"), r"grid\.mass_kg\[0\]: must be from 1000 to"),
+        (GOOD.replace("20000, 30000", "25, 30000"), r"grid\.mass_kg\[0\]: must be from 1000 to"),
         (GOOD.replace("[2, 4]", "[2, -4]"), r"grid\.battery_MJ\[1\]: must be > 0"),
         (GOOD.replace("[2, 4]", "[2, 2]"), r"grid\.battery_MJ: a value is listed twice"),
         (GOOD.replace("[2, 4]", "['two']"), r"grid\.battery_MJ\[0\]: expected a number"),
@@ -94,10 +94,10 @@ def test_good_file_parses(tmp_path):
         # a chunk's arrays are padded to batch_size: 1e9 ran out of memory on one grid point
         (GOOD.replace("batch_size = 4", "batch_size = 1000000000"),
          r"batch_size: at most 65536"),
-        # checked as float32 holds them: 1e39 kg ran into a JAX overflow and a crash, 1e33 MJ
-        # into NaN fuel with status ok, 1e-50 into 0
+        # checked as float32 holds them: 1e39 kg ran into a JAX overflow and a crash (now
+        # beyond a vehicle's mass first), 1e33 MJ into NaN fuel with status ok, 1e-50 into 0
         (GOOD.replace("20000, 30000", "20000, 1e39"),
-         r"s\.toml: grid\.mass_kg\[1\]: 1e\+39 is beyond what float32 holds"),
+         r"s\.toml: grid\.mass_kg\[1\]: must be from 1000 to 200000 kg"),
         (GOOD.replace("[2, 4]", "[2, 1e33]"),
          r"s\.toml: grid\.battery_MJ\[1\]: 1e\+33 is beyond what float32 holds"),
         (GOOD + "c_r = [1e-50]\n", r"grid\.c_r\[0\]: 1e-50 is beyond what float32"),
@@ -178,7 +178,7 @@ def test_bad_input_stops_before_any_computation(tmp_path, capsys):
     p = write(tmp_path, GOOD.replace("20000, 30000", "0, 30000"))
     assert sw.main([str(p), "--out", str(out)]) == 1
     err = capsys.readouterr().err
-    assert "grid.mass_kg[0]: must be > 0" in err and "s.toml" in err
+    assert "grid.mass_kg[0]: must be from 1000 to 200000 kg" in err and "s.toml" in err
     assert not out.exists()
 
 
@@ -362,8 +362,8 @@ def test_chunks_cover_every_point_once_with_equal_shapes(tmp_path_factory, sizes
                                                          n_strat):
     tmp = tmp_path_factory.mktemp("plan")
     keys = ["mass_kg", "battery_MJ", "motor_power_kW"][: len(sizes)]
-    grid = "\n".join(f"{k} = {[float(10 + i) for i in range(n)]}" for k, n in
-                     zip(keys, sizes, strict=True))
+    grid = "\n".join(f"{k} = {[float(10 + i) * (1e3 if k == 'mass_kg' else 1) for i in range(n)]}"
+                     for k, n in zip(keys, sizes, strict=True))
     strat = ["conventional", "baseline", "multilevel"][:n_strat]
     text = (f"routes = ['short_track']\nstrategies = {strat}\nbatch_size = {batch}\n"
             f"[grid]\n{grid}\n")
