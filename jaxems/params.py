@@ -311,10 +311,12 @@ def read_toml(path: Path, error: type = ValueError) -> tuple[str, dict]:
 
 def check_vehicle(vp: VehicleParams) -> VehicleParams:
     """`vp` where every scalar field, of each vehicle of a batch, meets its rule of the vehicle
-    file (`check_number`: mass > 0, soc0 in [0, 1], ...) and the engine's speed range is not
-    empty; else a `VehicleError` naming the field (and the vehicle's index in a batch). Files
-    are checked as they load; this checks vehicles built or changed in Python at the API.
-    Traced leaves (a host API called under `jit`) are left to the caller's concrete call."""
+    file (`check_number`: mass from 1 to 200 t, soc0 in [0, 1], ...), the engine's speed range
+    is not empty and the curves, gear ratios and has_motor are what a file gives
+    (`_array_rules`); else a `VehicleError` naming the field (and the vehicle's index in a
+    batch). Files are checked as they load; this checks vehicles built or changed in Python at
+    the API. Traced leaves (a host API called under `jit`) are left to the caller's concrete
+    call."""
     for field, scale, kind in _SCHEMA.values():
         if field.startswith("_") or kind not in _NUMBER_RULES:
             continue
@@ -322,6 +324,9 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
             x = np.asarray(getattr(vp, field), dtype=np.float64) / scale
         except TypeError:  # a tracer
             continue
+        except ValueError:
+            raise VehicleError(f"{field}: expected a number (got "
+                               f"{getattr(vp, field)!r})") from None
         flat = x.reshape(-1)
         for v in np.unique(flat):  # a sweep's batch holds few distinct values
             try:
@@ -336,6 +341,7 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
         rules = (("we_max", we_max <= we_min, "must exceed we_min (the engine's speed range)"),
                  ("w_pred", (w_pred < we_min) | (w_pred > we_max),
                   "must be within [we_min, we_max] (the engine's speed range)"))
+        rules += _array_rules(vp)
     except TypeError:  # a tracer
         return vp
     for field, broken, words in rules:
@@ -343,6 +349,45 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
         if bad.size:
             raise VehicleError(f"{field}{'' if np.ndim(broken) == 0 else f'[{bad[0]}]'}: {words}")
     return vp
+
+
+def _array_rules(vp: VehicleParams) -> tuple:
+    """(field, broken (batch shape) bool, words) of the fields that are not scalars, as the
+    vehicle file's rules hold them (`_check`, `params_from_dict`): the torque curves (speeds
+    increasing from >= 0, torques > 0 at full load and <= 0 braking, of their speeds' length,
+    spanning the engine's speed range), the gear ratios (> 0, falling from gear 1, at least
+    one) and has_motor (0 or 1). A NaN in a curve stopped a run inside Level 3 with no field
+    named, a falling full-load curve or has_motor 0.5 ran to results marked ok."""
+    a = {}
+    for k in ("te_max_w", "te_max", "te_min_w", "te_min", "gear_ratio", "has_motor", "we_min",
+              "we_max"):
+        try:
+            a[k] = np.asarray(getattr(vp, k), dtype=np.float64)
+        except ValueError:
+            raise VehicleError(f"{k}: expected numbers (got {getattr(vp, k)!r})") from None
+    out = []
+    for w, t, sign, name in (("te_max_w", "te_max", 1, "full-load"),
+                             ("te_min_w", "te_min", -1, "engine-brake")):
+        sp, tq = a[w], a[t]
+        if sp.ndim < 1 or sp.shape[-1] < 2:
+            raise VehicleError(f"{w}: expected at least 2 speeds (got shape {sp.shape})")
+        if tq.shape != sp.shape:
+            raise VehicleError(f"{t}: must have {w}'s shape {sp.shape} (got {tq.shape})")
+        with np.errstate(invalid="ignore"):
+            out += [(w, ~np.all(np.isfinite(sp) & (sp >= 0), -1) | ~np.all(np.diff(sp) > 0, -1),
+                     "speeds must be finite, >= 0 and strictly increasing"),
+                    (t, ~np.all(np.isfinite(tq) & ((tq > 0) if sign > 0 else (tq <= 0)), -1),
+                     f"{name} torques must be finite and " + ("> 0" if sign > 0 else "<= 0")),
+                    (w, ~((sp[..., 0] <= a["we_min"]) & (sp[..., -1] >= a["we_max"])),
+                     "must span the engine's speed range [we_min, we_max]")]
+    g = a["gear_ratio"]
+    if g.ndim < 1 or g.shape[-1] < 1:
+        raise VehicleError(f"gear_ratio: expected at least one gear (got shape {g.shape})")
+    with np.errstate(invalid="ignore"):
+        out += [("gear_ratio", ~np.all(np.isfinite(g) & (g > 0), -1) | ~np.all(np.diff(g) < 0, -1),
+                 "ratios must be finite, > 0 and falling from gear 1 (the shortest)"),
+                ("has_motor", ~np.isin(a["has_motor"], (0.0, 1.0)), "must be 0 or 1")]
+    return tuple(out)
 
 
 def with_overrides(
@@ -363,9 +408,22 @@ def with_overrides(
 
 
 def stack_vehicles(vehicles: list[VehicleParams]) -> VehicleParams:
-    """Stack vehicles of the same structure into one batch (leading axis on every leaf)."""
+    """Stack vehicles of the same structure into one batch (leading axis on every leaf); a
+    field whose shapes differ (curves of other lengths, another number of gears) is a
+    `VehicleError` naming it."""
     if not vehicles:
         raise VehicleError("stack_vehicles: empty list")
+    for i, v in enumerate(vehicles):
+        if not isinstance(v, VehicleParams):
+            raise VehicleError(f"stack_vehicles: vehicles[{i}] is not a VehicleParams (got "
+                               f"{type(v).__name__})")
+    for k in VehicleParams._fields:
+        shapes = [np.shape(getattr(v, k)) for v in vehicles]
+        if any(sh != shapes[0] for sh in shapes):
+            i = next(i for i, sh in enumerate(shapes) if sh != shapes[0])
+            raise VehicleError(f"stack_vehicles: {k} of vehicles[{i}] has shape {shapes[i]}, "
+                               f"vehicles[0]'s {shapes[0]} (a batch's vehicles share their "
+                               "shapes: as many gears and curve points)")
     return VehicleParams(*(np.stack(leaves) for leaves in zip(*vehicles, strict=True)))
 
 

@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import functools
 import math
+import numbers
 import os
 import time
 from collections.abc import Mapping
@@ -95,6 +96,8 @@ STRATEGIES = ("conventional", "baseline", "multilevel", "multilevel-mpc", "dp-bo
               "multilevel-eco")
 PAPER_STRATEGIES = STRATEGIES[:5]  # the rows of the paper's Table 8
 HYBRID = ("baseline", "multilevel", "multilevel-mpc", "dp-bound", "multilevel-eco")
+
+MAX_STEPS = 2**23  # the most Level 3 steps `simulate_batch` takes (97 days at 1 s)
 
 # status codes of a run (bit flags) and their names
 OK, INFEASIBLE_ROUTE, UNFINISHED, ECO_TIME = 0, 1, 2, 4
@@ -800,12 +803,7 @@ def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
     profile: matched to Level 3's trip time (times eco_time_ratio, with the 0.5 % tolerance) or,
     with a given eco_lambda_t, as long as its optimum takes (computed here), and
     ECO_STEPS_MARGIN more."""
-    if np.ndim(vehicles.mass) == 0:
-        vehicles = stack_vehicles([vehicles])
-    B, N = np.shape(vehicles.mass)[0], np.shape(route.grade)[-1]
-    w = np.broadcast_to(np.asarray(vehicles.w_pred)[:, None], (B, N))
-    prof = _profile_batch(route, vehicles, w)
-    trip = float(jnp.max(prof.trip_time))
+    trip = _level3_trip(route, vehicles)
     n = l3.steps_for(trip, dt)
     if strategy == "multilevel-eco":
         o = options or Options()
@@ -821,6 +819,35 @@ def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
 
 
 ECO_STEPS_MARGIN = 0.15  # `steps_for_batch`: multilevel-eco's steps beyond its optimum's trip
+
+
+def _level3_trip(route: Route, vehicles: VehicleParams) -> float:
+    """The longest Level 3 trip time (s) of a route and one vehicle or a batch."""
+    if np.ndim(vehicles.mass) == 0:
+        vehicles = stack_vehicles([vehicles])
+    B, N = np.shape(vehicles.mass)[0], np.shape(route.grade)[-1]
+    w = np.broadcast_to(np.asarray(vehicles.w_pred)[:, None], (B, N))
+    return float(jnp.max(_profile_batch(route, vehicles, w).trip_time))
+
+
+def _check_vehicle_batch(vehicles) -> int:
+    """B, the batch size of `simulate_batch`'s vehicles: a `VehicleParams` whose every leaf
+    has the same leading size B >= 1; else a `VehicleError` naming the field."""
+    if not isinstance(vehicles, VehicleParams):
+        raise VehicleError(f"simulate_batch: vehicles must be a VehicleParams batch "
+                           f"(stack_vehicles) (got {type(vehicles).__name__})")
+    if np.ndim(vehicles.mass) != 1:
+        raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
+                           "(stack_vehicles; for one vehicle use simulate)")
+    B = np.shape(vehicles.mass)[0]
+    if B < 1:
+        raise VehicleError("simulate_batch: an empty batch of vehicles")
+    for k in VehicleParams._fields:
+        sh = np.shape(getattr(vehicles, k))
+        if not sh or sh[0] != B:
+            raise VehicleError(f"simulate_batch: {k} has shape {sh}, where every field has the "
+                               f"batch's leading size {B} (mass's; stack_vehicles)")
+    return B
 
 
 def check_dt(dt) -> float:
@@ -953,9 +980,7 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     """
     check_strategy(strategy)
     route = route_arg(route)
-    if np.ndim(vehicles.mass) != 1:
-        raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
-                           "(stack_vehicles; for one vehicle use simulate)")
+    _check_vehicle_batch(vehicles)
     check_vehicle(vehicles)
     if isinstance(chunk, str):
         if chunk != "auto":
@@ -965,6 +990,13 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     params = sw.checked_params(switching, np.asarray(vehicles.mass).dtype)
     if n_steps is None:
         n_steps = steps_for_batch(route, vehicles, dt, strategy, opts)
+    else:  # a step count cut short cuts Level 3's prediction short, and the runs with it
+        need = int(math.floor(_level3_trip(route, vehicles) / dt)) + 1
+        if (isinstance(n_steps, bool) or not isinstance(n_steps, numbers.Integral)
+                or not need <= n_steps <= MAX_STEPS):
+            raise ValueError(f"n_steps: must be a whole number from {need} (Level 3's longest "
+                             f"trip, {need} steps of {dt:g} s) to {MAX_STEPS} (got {n_steps!r})")
+        n_steps = int(n_steps)
     if chunk == "auto":
         chunk = default_chunk(strategy, n_steps=int(n_steps),
                               itemsize=np.asarray(vehicles.mass).dtype.itemsize)

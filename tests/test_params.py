@@ -7,6 +7,7 @@ import tomllib
 import numpy as np
 import pytest
 
+import jaxems
 from jaxems.params import (
     KMH,
     RPM,
@@ -237,6 +238,49 @@ def test_stack_vehicles():
     np.testing.assert_allclose(batch.mass, [20000, 30000, 40000])
     with pytest.raises(VehicleError, match="empty"):
         stack_vehicles([])
+    six = vp.replace(gear_ratio=np.asarray(vp.gear_ratio)[6:])
+    with pytest.raises(VehicleError, match=r"gear_ratio of vehicles\[1\] has shape \(6,\)"):
+        stack_vehicles([vp, six])
+    with pytest.raises(VehicleError, match=r"vehicles\[1\] is not a VehicleParams"):
+        stack_vehicles([vp, None])
+
+
+def _nan_at(x, i):
+    x = np.array(x, dtype=float)
+    x[i] = np.nan
+    return x
+
+
+@pytest.mark.parametrize(
+    "field, change, why",
+    [
+        ("gear_ratio", lambda v: _nan_at(v.gear_ratio, 3), "ratios must be finite"),
+        ("gear_ratio", lambda v: np.asarray(v.gear_ratio)[::-1].copy(), "falling from gear 1"),
+        ("te_max", lambda v: _nan_at(v.te_max, 2), "full-load torques must be finite and > 0"),
+        ("te_max_w", lambda v: np.asarray(v.te_max_w)[::-1].copy(), "strictly increasing"),
+        ("te_max_w", lambda v: 0.5 * np.asarray(v.te_max_w), "must span the engine's speed"),
+        ("te_min", lambda v: np.abs(np.asarray(v.te_min)) + 1.0, "engine-brake torques"),
+        ("has_motor", lambda v: 0.5, "must be 0 or 1"),
+        ("has_motor", lambda v: np.nan, "must be 0 or 1"),
+    ],
+)
+def test_check_vehicle_holds_curves_gears_and_the_motor_flag(field, change, why):
+    """The fields a vehicle file sets from lists (the torque curves, the gear ratios) and
+    has_motor are held to the file's rules too, by field and in a batch by vehicle: a NaN gear
+    ratio or torque stopped a run inside Level 3 naming no field, a falling speed axis or
+    has_motor 0.5 ran to results marked ok."""
+    vp = load_vehicle()
+    bad = vp._replace(**{field: np.asarray(change(vp), dtype=np.float64)})
+    with pytest.raises(VehicleError, match=rf"^{field}: .*{why}"):
+        check_vehicle(bad)
+    with pytest.raises(VehicleError, match=rf"^{field}\[1\]: .*{why}"):
+        check_vehicle(stack_vehicles([vp, bad, vp]))
+    with pytest.raises(VehicleError, match=rf"^{field}"):  # at the API, before anything runs
+        jaxems.simulate("short_track", bad, strategy="conventional")
+    with pytest.raises(VehicleError, match=r"^te_max: must have te_max_w's shape"):
+        check_vehicle(vp._replace(te_max=np.asarray(vp.te_max)[:3]))
+    with pytest.raises(VehicleError, match=r"^mass: expected a number \(got 'abc'\)"):
+        check_vehicle(vp._replace(mass="abc"))
 
 
 @pytest.mark.parametrize(

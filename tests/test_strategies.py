@@ -24,6 +24,7 @@ from jaxems import plan as pn
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.io import load_route
+from jaxems.levels.velocity import predict_velocity
 from jaxems.sweep import compare_strategies
 from jaxems.params import VehicleError, load_vehicle, stack_vehicles
 from repo_scripts import load_script
@@ -740,6 +741,28 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
     np.testing.assert_array_equal(by_name["fuel_J"], out["fuel_J"])
     with pytest.raises(VehicleError, match="leading batch axis"):
         S.simulate_batch("short_track", VP, "baseline")
+
+
+def test_simulate_batch_refuses_a_malformed_batch_and_a_short_step_count():
+    """A batch whose fields disagree on its size, an empty one, a list, and a step count that
+    would cut Level 3's prediction short (it ran, marked ok, with another fuel) or is not a
+    whole number are errors naming the field, before anything compiles for the strategy
+    (they failed inside JAX, or ran)."""
+    two = stack_vehicles([VP, VP.replace(mass=18000.0)])
+    empty = jax.tree.map(lambda x: np.zeros((0, *np.shape(x))), VP)
+    for vehicles, match in (
+            (VP.replace(mass=np.array([2e4, 2.5e4, 3e4])), r"rho has shape \(\)"),
+            (two.replace(soc0=np.array([0.5, 0.5, 0.5])), r"soc0 has shape \(3,\)"),
+            (empty, "an empty batch"),
+            ([VP, VP], r"vehicles must be a VehicleParams batch .* \(got list\)")):
+        with pytest.raises(VehicleError, match=f"^simulate_batch: {match}"):
+            S.simulate_batch("short_track", vehicles, "baseline")
+    trip = max(float(predict_velocity(load_route("short_track"), v).trip_time)
+               for v in (VP, VP.replace(mass=18000.0)))
+    need = int(np.floor(trip)) + 1  # steps of 1 s
+    for n in (need - 1, 0, 1.5, "auto", True, S.MAX_STEPS + 1):
+        with pytest.raises(ValueError, match=f"^n_steps: must be a whole number from {need} "):
+            S.simulate_batch("short_track", two, "baseline", n_steps=n)
 
 
 def test_multilevel_batch_equals_single_runs(runs):
