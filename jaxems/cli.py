@@ -351,6 +351,10 @@ def cmd_simulate(args) -> int:
     if args.n_iter is not None and args.n_iter < 1:
         raise CLIError(f"--n-iter: must be a whole number >= 1 (got {args.n_iter})")
     csv, plot = check_output(args.csv, "--csv"), check_output(args.plot, "--plot")
+    if plot is not None and plot.suffix.lower() != ".png":
+        raise CLIError(f"--plot: the plot is a PNG: its file name ends in .png (got {args.plot})")
+    if csv is not None and plot is not None and csv.resolve() == plot.resolve():
+        raise CLIError(f"--csv and --plot: the same file {args.csv} (each needs its own)")
     _setup_jax()
     vp = _load_vehicle(args)  # mass and battery validated here
     path = resolve_route(args.route)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import tomllib
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -286,6 +287,9 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
 
     Raises `VehicleError` (a `ValueError`) naming the file and the field on any bad value.
     """
+    if not isinstance(name_or_path, str | os.PathLike):
+        raise VehicleError(f"vehicle: expected a VehicleParams, a vehicle file's path or a "
+                           f"bundled vehicle's name (got {type(name_or_path).__name__})")
     p = Path(name_or_path)
     if not p.suffix and not p.exists():
         p = VEHICLE_DIR / f"{name_or_path}.toml"

@@ -35,6 +35,7 @@ so that errors name the file, line and column.
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -277,10 +278,12 @@ def route_from_rows(
     ds: requested cell length (m), 1..100; the grid uses L / ceil(L / ds).
     bucket: pad the node count up to a multiple of this (None: no padding).
     """
-    if not (isinstance(ds, int | float) and DS_RANGE[0] <= ds <= DS_RANGE[1]):
+    if not (isinstance(ds, numbers.Real) and not isinstance(ds, bool)
+            and DS_RANGE[0] <= ds <= DS_RANGE[1]):
         raise RouteError(
             f"{source}: ds must be a number from {DS_RANGE[0]:g} to {DS_RANGE[1]:g} m (got {ds!r})"
         )
+    ds = float(ds)
     check_rows(rows, source, cols)
     s_rows = np.array([r.s_m for r in rows], dtype=np.float64)
     s_rows = s_rows - s_rows[0]

@@ -131,9 +131,14 @@ def _resolve_devices(devices) -> tuple:
             raise ValueError(f"map_batch: devices={devices} but {len(avail)} device(s) exist "
                              f"(use_host_devices sets the CPU device count)")
         return tuple(avail[: int(devices)])
+    if isinstance(devices, str | bytes) or not isinstance(devices, Sequence):
+        raise ValueError(f"devices: expected None, a number of devices or a list of JAX devices "
+                         f"(got {devices!r})")
     devs = tuple(devices)
     if not devs:
         raise ValueError("map_batch: devices is empty")
+    if not all(isinstance(d, jax.Device) for d in devs):
+        raise ValueError(f"devices: expected JAX devices, as jax.devices() gives (got {devs!r})")
     return devs
 
 

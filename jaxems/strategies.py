@@ -747,7 +747,7 @@ KERNELS = {
 
 # ------------------------------------------------------------------------------ host API
 def check_strategy(name: str) -> str:
-    if name not in KERNELS:
+    if not isinstance(name, str) or name not in KERNELS:
         raise ValueError(f"strategy: unknown {name!r} (choose from {', '.join(STRATEGIES)})")
     return name
 
@@ -852,7 +852,8 @@ def _check_vehicle_batch(vehicles) -> int:
 
 def check_dt(dt) -> float:
     """The time step (s) as a float, from 0.05 to 10 s; else ValueError naming dt."""
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and 0.05 <= dt <= 10):
+    if not (isinstance(dt, numbers.Real) and not isinstance(dt, bool) and math.isfinite(dt)
+            and 0.05 <= dt <= 10):
         raise ValueError(f"dt: must be a time step from 0.05 to 10 s (got {dt!r})")
     return float(dt)
 
@@ -1126,6 +1127,10 @@ def make_options(base: Options | Mapping | None = None, strategies=None, /,
     bad = sorted(set(fields) - set(Options._fields))
     if bad:
         raise ValueError(f"unknown option {bad[0]!r} (options: {', '.join(Options._fields)})")
+    # NumPy's whole numbers and reals as Python's (the options are static: a compilation's
+    # key), the others as given for `_check_options` to judge
+    fields = {k: (int(v) if isinstance(v, np.integer) else
+                  float(v) if isinstance(v, np.floating) else v) for k, v in fields.items()}
     opts = (base or Options())._replace(**fields)
     _check_options(opts)
     if strategies is not None:

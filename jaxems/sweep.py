@@ -513,6 +513,8 @@ def option_pairs(pairs, where: str = "--option", strategy=None) -> dict:
         try:
             if not sep or not name.strip():
                 raise ValueError("expected NAME=VALUE")
+            if name.strip() in out:  # the first would be dropped without a word
+                raise ValueError(f"{name.strip()} given twice")
             out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
         except (ValueError, tomllib.TOMLDecodeError) as e:
             raise SweepError(f"{where} {pair!r}: {e}") from None
@@ -973,6 +975,9 @@ def compare_strategies(route, vehicle="reference_truck", strategies=COMPARE_STRA
     from .report import corrected_l_per_100km
     from .strategies import check_strategy, make_options, named_route, simulate
 
+    if not isinstance(strategies, str | list | tuple):
+        raise ValueError(f"strategies: expected a name or a list of names (got "
+                         f"{type(strategies).__name__})")
     strategies = [strategies] if isinstance(strategies, str) else list(strategies)
     if not strategies:
         raise ValueError("strategies: none given")

@@ -136,12 +136,17 @@ def test_simulate_checks_its_output_files_before_running(capsys, tmp_path, monke
     from jaxems import strategies
 
     monkeypatch.setattr(strategies, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
-    for flag, path, words in [
-        ("--csv", tmp_path / "missing" / "run.csv", "--csv: the directory"),
-        ("--plot", tmp_path, "--plot: " + str(tmp_path) + " is a directory"),
-        ("--csv", "", "--csv: expected a file name"),  # was "--csv:  is a directory"
+    same = str(tmp_path / "run.png")
+    for args, words in [
+        (("--csv", tmp_path / "missing" / "run.csv"), "--csv: the directory"),
+        (("--plot", tmp_path), "--plot: " + str(tmp_path) + " is a directory"),
+        (("--csv", ""), "--csv: expected a file name"),  # was "--csv:  is a directory"
+        # a PNG under another name; the time series and the plot into one file (the plot
+        # overwrote the CSV)
+        (("--plot", tmp_path / "run.pdf"), "--plot: the plot is a PNG"),
+        (("--csv", same, "--plot", same), "--csv and --plot: the same file"),
     ]:
-        code, out, err = run(capsys, "simulate", "short_track", flag, str(path))
+        code, out, err = run(capsys, "simulate", "short_track", *map(str, args))
         assert code == 1 and out == ""
         assert err.count("\n") == 1 and err.startswith("jaxems: error: ") and words in err
     assert list(tmp_path.iterdir()) == []
@@ -164,6 +169,7 @@ def test_simulate_registered():
         (["--option", "l2_pieces"], "--option 'l2_pieces': expected NAME=VALUE"),
         (["--option", "n_iter=0"], "n_iter: must be a whole number >= 1"),
         (["--option", "n_iter=2", "--n-iter", "3"], "--n-iter: given twice"),
+        (["--option", "dwell=2", "--option", "dwell=4"], "dwell given twice"),  # kept the last
         # an option the strategy ignores would change nothing
         (["--strategy", "baseline", "--option", "h1=3"],
          "--option: h1: not an option of baseline, which would ignore it"),

@@ -765,6 +765,31 @@ def test_simulate_batch_refuses_a_malformed_batch_and_a_short_step_count():
             S.simulate_batch("short_track", two, "baseline", n_steps=n)
 
 
+def test_api_arguments_of_another_type_are_named_and_numpy_scalars_taken():
+    """A vehicle, strategy, strategy list or device list of the wrong type is an error naming
+    the argument (they failed in pathlib, on an unhashable list, on iterating None, inside
+    JAX's mesh code); NumPy's scalars are numbers (dt=np.float32(1.0) was refused as out of
+    its range, n_iter=np.int64(2) as no whole number)."""
+    from jaxems import shard
+
+    with pytest.raises(VehicleError, match="^vehicle: expected a VehicleParams, .*NoneType"):
+        S.simulate("short_track", None, "conventional")
+    with pytest.raises(ValueError, match=r"^strategy: unknown \['multilevel'\]"):
+        S.simulate("short_track", VP, ["multilevel"])
+    with pytest.raises(ValueError, match="^strategies: expected a name or a list .*NoneType"):
+        compare_strategies("short_track", VP, None)
+    for devices in ("cpu", [0, 1]):
+        with pytest.raises(ValueError, match="^devices: expected"):
+            shard.map_batch(lambda x: x, np.zeros(2), devices=devices)
+    assert S.check_dt(np.float32(0.5)) == 0.5 and S.check_dt(np.int64(2)) == 2.0
+    with pytest.raises(ValueError, match="^dt: "):
+        S.check_dt(True)
+    o = S.make_options(n_iter=np.int64(3), dwell=np.float32(2.0))
+    assert o.n_iter == 3 and type(o.n_iter) is int and o == S.make_options(n_iter=3, dwell=2.0)
+    assert float(load_route("short_track", ds=np.float32(10)).ds) == float(
+        load_route("short_track", ds=10.0).ds)
+
+
 def test_multilevel_batch_equals_single_runs(runs):
     """What sweeps run: multilevel's batch path (a vmapped chunk, Level 2 and the plan-keeping
     Level 1 one configuration at a time inside it) gives each configuration's single run, to

@@ -73,6 +73,7 @@ from __future__ import annotations
 
 import collections
 import math
+import numbers
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
@@ -428,8 +429,10 @@ def predict_velocity(
     (rad/s) per node, default vehicle.w_pred. Returns a `Prediction` with (n_steps,) arrays.
     Raises ValueError when n_steps is too small for the trip.
     """
-    if not (isinstance(dt, int | float) and dt > 0 and math.isfinite(dt)):
+    if not (isinstance(dt, numbers.Real) and not isinstance(dt, bool) and dt > 0
+            and math.isfinite(dt)):
         raise ValueError(f"dt must be a positive number of seconds (got {dt!r})")
+    dt = float(dt)
     if np.ndim(route.ds) != 0 or np.ndim(vehicle.mass) != 0:
         raise ValueError("predict_velocity takes one route and one vehicle; use predict_batch")
     check_vehicle(vehicle)
