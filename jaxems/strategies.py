@@ -803,6 +803,8 @@ def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
     profile: matched to Level 3's trip time (times eco_time_ratio, with the 0.5 % tolerance) or,
     with a given eco_lambda_t, as long as its optimum takes (computed here), and
     ECO_STEPS_MARGIN more."""
+    if np.ndim(vehicles.mass) == 0:
+        vehicles = stack_vehicles([vehicles])
     trip = _level3_trip(route, vehicles)
     n = l3.steps_for(trip, dt)
     if strategy == "multilevel-eco":
@@ -822,9 +824,7 @@ ECO_STEPS_MARGIN = 0.15  # `steps_for_batch`: multilevel-eco's steps beyond its 
 
 
 def _level3_trip(route: Route, vehicles: VehicleParams) -> float:
-    """The longest Level 3 trip time (s) of a route and one vehicle or a batch."""
-    if np.ndim(vehicles.mass) == 0:
-        vehicles = stack_vehicles([vehicles])
+    """The longest Level 3 trip time (s) of a route and a batch of vehicles."""
     B, N = np.shape(vehicles.mass)[0], np.shape(route.grade)[-1]
     w = np.broadcast_to(np.asarray(vehicles.w_pred)[:, None], (B, N))
     return float(jnp.max(_profile_batch(route, vehicles, w).trip_time))

@@ -106,7 +106,7 @@ def test_strategies_pick_the_code_generator_per_strategy(monkeypatch):
     route, vps = load_route("short_track"), stack_vehicles([load_vehicle()] * 2)
     for name in S.STRATEGIES:
         with pytest.raises(_Stop) as e:
-            S.simulate_batch(route, vps, name, n_steps=64)
+            S.simulate_batch(route, vps, name, n_steps=256)
         assert e.value.args == (S.BATCH_ELEMENTAL[name],)
     # measured (README, "Compilation"): the MPC, the eco-driving and the conventional truck's
     # batch run faster with XLA's default emitters
