@@ -86,6 +86,58 @@ def test_traction_loss_matches_simulation(F0):
     assert float(r.cost) == pytest.approx(-PRM.lambda_t * t_loss, rel=1e-3)
 
 
+def simulate_event_stopping(m, F0, v0, tau, F_max, dt=1e-3):
+    """`simulate_event` where the truck may come to rest during the open driveline (uphill,
+    v0 < F0 tau / m): it stays there (held, not rolling back) until traction returns, then
+    recovers v0 at full traction; each step integrated exactly (constant acceleration)."""
+    s, v, t = 0.0, v0, 0.0
+    a0 = -F0 / m
+    while t < tau - 1e-12:
+        h = min(dt, tau - t)
+        if v > 0 and v + a0 * h <= 0:  # at rest within the step
+            h_stop = v / -a0
+            s += 0.5 * v * h_stop
+            v = 0.0
+        elif v > 0:
+            s += v * h + 0.5 * a0 * h * h
+            v += a0 * h
+        t += h
+    v1, a, t_r = v, (F_max - F0) / m, 0.0
+    while v < v0:
+        h = min(dt, (v0 - v) / a)
+        s += v * h + 0.5 * a * h * h
+        v += a * h
+        t_r += h
+    return tau + t_r - s / v0, v0 - v1
+
+
+@settings(max_examples=40, deadline=None)
+@given(v0=st.floats(1.0, 10.0), tau=st.floats(0.2, 3.0), share=st.floats(0.02, 0.9))
+def test_traction_loss_matches_simulation_also_where_the_truck_stops(v0, tau, share):
+    """A20-A22 against the time-stepped event on climbs up to 0.9 of the largest traction
+    force, open times of 0.2-3 s and speeds from v_min: also where the truck comes to rest
+    while the driveline is open (the branch the fixed cases above never reached)."""
+    m, F_max = 20000.0, 30000.0
+    F0 = share * F_max
+    r = sw.traction_loss(VP.replace(mass=m), F0, v0, tau, F_max, PRM)
+    t_loss, v_loss = simulate_event_stopping(m, F0, v0, tau, F_max)
+    assert float(r.speed_loss_mps) == pytest.approx(v_loss, rel=1e-9, abs=1e-9)
+    assert float(r.time_loss_s) == pytest.approx(t_loss, rel=1e-6, abs=1e-9)
+    assert float(r.cost) == pytest.approx(-PRM.lambda_t * t_loss, rel=1e-6, abs=1e-6)
+    assert not bool(r.saturated)
+
+
+def test_traction_loss_where_the_truck_stops_is_reached():
+    """One event that ends at rest, fixed (the draws above reach such events, but which ones
+    depends on Hypothesis): the whole speed lost, the time loss the simulation's."""
+    m, F_max, v0, tau = 20000.0, 30000.0, 1.5, 3.0
+    F0 = 0.5 * F_max  # 0.75 m/s^2: at rest after 2 s of the 3
+    r = sw.traction_loss(VP.replace(mass=m), F0, v0, tau, F_max, PRM)
+    assert float(r.speed_loss_mps) == v0
+    t_loss, _ = simulate_event_stopping(m, F0, v0, tau, F_max)
+    assert float(r.time_loss_s) == pytest.approx(t_loss, rel=1e-6)
+
+
 def test_traction_saturated_and_downhill_use_kinetic_energy():
     m, v0 = 20000.0, 7.0
     vp = VP.replace(mass=m)
