@@ -28,6 +28,7 @@ from jaxems.levels.velocity import (
     optimize_velocity_batch,
     profile_from_speed,
     project_speeds,
+    restore_feasible,
     soft_min_hamiltonian,
     speed_bounds,
     velocity_profile,
@@ -259,6 +260,68 @@ def test_projection_is_feasible(raw, which):
     np.testing.assert_allclose(again, v, atol=1e-12)
     np.testing.assert_allclose(np.asarray(PROJECT(route, VP, l3.v, l3.v, lo, hi)),
                                np.asarray(l3.v), atol=1e-12)
+
+
+def loop_project(route, v, v_ref, lo, hi):
+    """`project_speeds` as plain loops (its docstring's four recursions in v^2)."""
+    f, n, ds = _veh(VP), n_nodes(route), float(route.ds)
+    g = np.asarray(route.grade)[:n]
+    c = np.array([2 * ds * a_fwd(f, v_ref[i], g[i], f.w_pred) for i in range(n - 1)])
+    b = 2 * ds * f.a_min
+    L = lo[:n] ** 2
+    for i in range(n - 2, -1, -1):  # the end can be reached
+        L[i] = max(L[i], L[i + 1] - c[i])
+    for i in range(n - 1):  # the start can brake to them
+        L[i + 1] = max(L[i + 1], L[i] - b)
+    x = np.clip(np.clip(v[:n], lo[:n], hi[:n]) ** 2, L, hi[:n] ** 2)
+    for i in range(n - 1):
+        x[i + 1] = min(x[i + 1], x[i] + c[i])
+    for i in range(n - 2, -1, -1):
+        x[i] = min(x[i], x[i + 1] + b)
+    return np.sqrt(np.maximum(np.maximum(x, np.minimum(L, hi[:n] ** 2)), 0.0))
+
+
+def loop_restore(route, v):
+    """`restore_feasible` as plain loops: forward at the traction at each node's speed, never
+    below the crawl floor (0 at stops), then backward at a_min."""
+    f, n, ds = _veh(VP), n_nodes(route), float(route.ds)
+    g, stop = np.asarray(route.grade)[:n], np.asarray(route.stop)[:n]
+    lim = np.where(stop > 0, 0.0, np.minimum(np.asarray(route.vmax)[:n], f.v_cruise))
+    floor = np.where(stop > 0, 0.0, np.minimum(V_CRAWL, lim))
+    out = np.array(v[:n], dtype=float)
+    for i in range(n - 1):
+        a = a_fwd(f, out[i], g[i], f.w_pred)
+        nxt = min(out[i + 1], math.sqrt(max(out[i] ** 2 + 2 * a * ds, 0.0)))
+        out[i + 1] = max(nxt, min(floor[i + 1], out[i + 1]))
+    for i in range(n - 2, -1, -1):
+        out[i] = min(out[i], math.sqrt(out[i + 1] ** 2 + 2 * f.a_min * ds))
+    return out
+
+
+RESTORE = xla.jit(restore_feasible)
+
+
+@settings(max_examples=20)
+@given(st.lists(st.floats(0.0, 30.0), min_size=64, max_size=64),
+       st.lists(st.floats(0.5, 30.0), min_size=64, max_size=64), st.sampled_from([0, 1]))
+def test_projection_and_restoration_are_their_loops(raw, ref, which):
+    """project_speeds (four associative min-plus scans) and restore_feasible (two sequential
+    scans) against their recursions written as loops, on random speeds and traction speeds
+    v_ref, a route with a hill and one with stops (an audit found only their properties
+    tested)."""
+    route = (HILL, STOPS)[which]
+    n = n_nodes(route)
+    lo, hi, _ = BOUNDS(route)
+    lo, hi = np.asarray(lo), np.asarray(hi)
+    raw, ref = np.asarray(raw), np.minimum(np.asarray(ref), hi)
+    got = np.asarray(PROJECT(route, VP, jnp.asarray(raw), jnp.asarray(ref), lo, hi))
+    np.testing.assert_allclose(got[:n], loop_project(route, raw, ref, lo, hi), rtol=1e-10,
+                               atol=1e-10)
+    assert np.all(got[n:] == 0.0)
+    below = np.minimum(raw, hi)  # restore_feasible only lowers: from speeds within the limits
+    got = np.asarray(RESTORE(route, VP, jnp.asarray(below)))
+    np.testing.assert_allclose(got[:n], loop_restore(route, below), rtol=1e-10, atol=1e-10)
+    assert np.all(got[:n] <= np.maximum(below[:n], V_CRAWL) + 1e-12) and np.all(got[n:] == 0)
 
 
 def test_min_plus_scan_matches_loop():
