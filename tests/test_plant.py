@@ -305,6 +305,13 @@ def test_unfinished_route_is_reported():
     assert r.as_dict()["trip_time_s"] != r.as_dict()["trip_time_s"]  # NaN
     done = S._metrics(run(VP, -2.2), PRED, VP, -2.2, S.OK)
     assert float(done.trip_time_s) > 0 and int(done.status) == S.OK
+    # a prediction whose trip does not fit its steps (simulate_batch given too few: it ran,
+    # marked ok, on a prediction cut short) says so
+    T = PRED.v.shape[0]
+    for trip, short in ((T * float(PRED.dt) - 1e-6, False), (T * float(PRED.dt), True)):
+        m = S._metrics(run(VP, -2.2), PRED._replace(trip_time=trip), VP, -2.2, S.OK)
+        assert bool(int(m.status) & S.STEPS_SHORT) is short
+    assert S.status_text(S.STEPS_SHORT) == "level3-steps-short"
 
 
 @settings(max_examples=40, deadline=None)
@@ -559,9 +566,10 @@ def assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req,
 
 
 @settings(max_examples=60, deadline=None)
-@given(v=st.floats(0.0, 30.0), grade=st.floats(-0.3, 0.3),
+@given(v=st.floats(0.0, 30.0, allow_subnormal=False), grade=st.floats(-0.3, 0.3),
        extra=st.floats(-50e3, 400e3, allow_subnormal=False),  # XLA's CPU flushes them to 0
-       E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0), mass=st.floats(12e3, 40e3),
+       E_frac=st.floats(0.0, 1.0, allow_subnormal=False), lam=st.floats(-4.5, -1.0),
+       mass=st.floats(12e3, 40e3),
        s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), hybrid=st.booleans(),
        pb_plan=PB_PLAN)
 def test_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid,
@@ -678,13 +686,17 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
         np.testing.assert_array_equal(np.asarray(getattr(tr, name))[:n],
                                       [getattr(x, name) for x in steps[:n]], err_msg=name)
     # the loop's optimal split is a search on H, which is flat to rounding within about 0.01 W
-    # of its minimum (its curvature is the battery's -lambda_b beta): powers to 0.1 W, the
-    # battery's energy, which sums them, to 5 J, speeds short of their target to 1e-6 m/s
-    for name, atol in (("s", 1e-5), ("v", 1e-6), ("E_b", 5.0), ("P_d", 0.1), ("P_e", 0.1),
-                       ("P_m", 0.1), ("P_b", 0.1), ("P_f", 0.1), ("P_brake", 0.1),
+    # of its minimum (its curvature is the battery's -lambda_b beta), but to about 0.15 W in a
+    # crawl up 30 % at 27.5 t (P_m 0.14 W apart, P_d 0.18 W on 197 kW): powers to 0.5 W or
+    # 1e-6 of them, the battery's energy, which sums them, to 5 J, speeds short of their
+    # target (which the powers set: 0.5 W over m v) to 5e-5 m/s (1.6e-6 seen), positions to
+    # 1e-4 m
+    for name, atol in (("s", 1e-4), ("v", 5e-5), ("E_b", 5.0), ("P_d", 0.5), ("P_e", 0.5),
+                       ("P_m", 0.5), ("P_b", 0.5), ("P_f", 0.5), ("P_brake", 0.5),
                        ("v_ref", 1e-6)):
+        rtol = 1e-6 if name.startswith("P_") else 1e-8
         np.testing.assert_allclose(np.asarray(getattr(tr, name))[:n],
-                                   [getattr(x, name) for x in steps[:n]], rtol=1e-8, atol=atol,
+                                   [getattr(x, name) for x in steps[:n]], rtol=rtol, atol=atol,
                                    err_msg=name)
     t = res.final.tot
     for name in ("fuel", "road", "loss_engine", "loss_slip", "loss_motor", "loss_battery",
@@ -747,7 +759,8 @@ def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, 
     tr = res.trace
     s, v, gear = (np.asarray(x) for x in (tr.s, tr.v, tr.gear))
     climb = (s > 5.0) & (s < 140.0)  # the launch is behind, the crest ahead
-    assert climb.sum() > 20 and np.all(v[climb] > 0.5)  # no stall on the climb
+    # no stall on the climb (a heavy truck is still launching at 5 m: 0.4998 m/s at 37.5 t)
+    assert climb.sum() > 20 and np.all(v[climb] > 0.4)
     v_top = float(min(vp.we_max, vp.wm_max) / (vp.gear_ratio[0] * vp.r_d))
     assert np.all(v[climb] <= v_top) and np.all(gear[climb] == 0)
     assert np.sum(np.abs(v[climb] - v_top) < 1e-3 * v_top) > 10  # held at the top

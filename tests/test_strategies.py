@@ -24,7 +24,6 @@ from jaxems import plan as pn
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.io import load_route
-from jaxems.levels.velocity import predict_velocity
 from jaxems.sweep import compare_strategies
 from jaxems.params import VehicleError, load_vehicle, stack_vehicles
 from repo_scripts import load_script
@@ -743,11 +742,11 @@ def test_batch_in_chunks_equals_a_loop_of_single_runs(runs):
         S.simulate_batch("short_track", VP, "baseline")
 
 
-def test_simulate_batch_refuses_a_malformed_batch_and_a_short_step_count():
+def test_simulate_batch_refuses_a_malformed_batch_and_step_count():
     """A batch whose fields disagree on its size, an empty one, a list, and a step count that
-    would cut Level 3's prediction short (it ran, marked ok, with another fuel) or is not a
-    whole number are errors naming the field, before anything compiles for the strategy
-    (they failed inside JAX, or ran)."""
+    is not a whole number are errors naming the field, before anything compiles for the
+    strategy (they failed inside JAX, or ran). (Too few steps for Level 3's trip: the run's
+    status, `test_plant`'s test of an unfinished route.)"""
     two = stack_vehicles([VP, VP.replace(mass=18000.0)])
     empty = jax.tree.map(lambda x: np.zeros((0, *np.shape(x))), VP)
     for vehicles, match in (
@@ -757,11 +756,8 @@ def test_simulate_batch_refuses_a_malformed_batch_and_a_short_step_count():
             ([VP, VP], r"vehicles must be a VehicleParams batch .* \(got list\)")):
         with pytest.raises(VehicleError, match=f"^simulate_batch: {match}"):
             S.simulate_batch("short_track", vehicles, "baseline")
-    trip = max(float(predict_velocity(load_route("short_track"), v).trip_time)
-               for v in (VP, VP.replace(mass=18000.0)))
-    need = int(np.floor(trip)) + 1  # steps of 1 s
-    for n in (need - 1, 0, 1.5, "auto", True, S.MAX_STEPS + 1):
-        with pytest.raises(ValueError, match=f"^n_steps: must be a whole number from {need} "):
+    for n in (0, 1.5, "auto", True, S.MAX_STEPS + 1):
+        with pytest.raises(ValueError, match="^n_steps: must be a whole number from 1 to"):
             S.simulate_batch("short_track", two, "baseline", n_steps=n)
 
 
