@@ -161,13 +161,19 @@ def test_a_window_padded_with_masked_steps_gives_the_same_costate(j, seed, E0):
 @settings(max_examples=30, deadline=None)
 @given(K=st.integers(1, 6), seed=st.integers(0, 2**16))
 def test_piece_sums_equal_a_loop_over_the_pieces(K, seed):
-    """`piece_sums` (a cumulative sum's differences, fixed order) against a loop over the
-    steps; empty pieces sum to 0. One length T: each shape compiles once per K."""
+    """`piece_ids` and `piece_sums` (a cumulative sum's differences, fixed order) against
+    loops over the steps; empty pieces sum to 0. One length T: each shape compiles once per
+    K."""
     rng = np.random.default_rng(seed)
     T = 64
     bnd = np.sort(np.concatenate([[0], rng.integers(0, T + 1, K - 1), [T]]))
     x = rng.normal(0.0, 1e5, T)
     pid = np.asarray(b.piece_ids(bnd, T))
+    # each step's piece, by a loop: the last whose start is at or before it (empty pieces,
+    # repeated boundaries, hold no step)
+    for j in range(T):
+        p = max(q for q in range(K) if bnd[q] <= j)
+        assert pid[j] == p and bnd[p] <= j < bnd[p + 1], (j, pid[j], bnd)
     want = np.zeros(K)
     for j in range(T):
         want[pid[j]] += x[j]

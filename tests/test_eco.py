@@ -344,6 +344,29 @@ SOFT_GRAD = xla.jit(jax.grad(lambda H, P, tau: soft_min_hamiltonian(H, P, VP, ta
 @settings(max_examples=30)
 @given(st.floats(-4e5, 6e5), st.floats(0.3, 25.0), st.floats(-4.0, -1.0),
        st.sampled_from([10.0, 100.0, 1000.0]))
+def test_soft_min_is_numpys_log_sum_exp(P_d, v, lam, tau):
+    """The soft minimum over the feasible modes and gears against NumPy's -tau log sum
+    exp(-H / tau) (scipy's shift by the minimum), and the exact minimum; the penalty where
+    nothing can deliver (an audit found only its bounds tested)."""
+    H = np.asarray(MGS(P_d, v, lam))
+    ok = np.isfinite(H)
+    got = float(SOFT(jnp.asarray(H), P_d, VP, tau))
+    hard = float(SOFT(jnp.asarray(H), P_d, VP, None))
+    if ok.any():
+        h = H[ok]
+        want = h.min() - tau * np.log(np.sum(np.exp(-(h - h.min()) / tau)))
+        assert got == pytest.approx(want, rel=1e-12, abs=1e-9) and hard == h.min()
+    else:
+        pen = vel.P_PENALTY_W + 2.0 * max(P_d, 0.0) / float(VP.eta_e)
+        assert got == hard == pytest.approx(pen, rel=1e-12)
+    none = np.full_like(H, np.inf)  # nothing feasible: the penalty, increasing in P_d
+    assert float(SOFT(jnp.asarray(none), P_d, VP, tau)) == pytest.approx(
+        vel.P_PENALTY_W + 2.0 * max(P_d, 0.0) / float(VP.eta_e), rel=1e-12)
+
+
+@settings(max_examples=30)
+@given(st.floats(-4e5, 6e5), st.floats(0.3, 25.0), st.floats(-4.0, -1.0),
+       st.sampled_from([10.0, 100.0, 1000.0]))
 def test_soft_min_bounds_and_finite_gradient(P_d, v, lam, tau):
     H = MGS(P_d, v, lam)
     hard = float(SOFT(H, P_d, VP, None))
