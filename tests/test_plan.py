@@ -16,9 +16,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as hst
 
-from jaxems import plant as pl
 from jaxems import plan as pn
 from jaxems import powertrain as pt
+from jaxems import reference as R
 from jaxems import strategies as S
 from jaxems import switching as sw
 from jaxems import xla
@@ -86,13 +86,16 @@ path = xla.jit(pn.battery_path)
 
 
 def loop_range(k):
-    """The plant's battery-power range of the plan's state at step k (the trim's bounds)."""
-    r = pl.state_ranges(VP, R1.mode[k], R1.gear[k], PRED.v[k])
+    """The plant's battery-power range of the plan's state at step k (the trim's bounds), by
+    the NumPy reference's capabilities of the state (`reference._state_caps`; it read the
+    kernel's own `plant.state_ranges`)."""
+    f = R._veh(VP)
+    c = R._state_caps(f, int(R1.mode[k]), int(R1.gear[k]), float(PRED.v[k]))
     P_d = float(PRED.P_d[k])
-    lo = float(ps.pb_of_pm(VP, r, max(-float(r.m_lim), P_d - float(r.e_hi))))
-    hi = float(ps.pb_of_pm(VP, r, min(float(r.m_lim), P_d - float(r.e_lo))))
+    lo = R._pb_of_pm_state(f, c, max(-c.m_lim, P_d - c.e_hi))
+    hi = R._pb_of_pm_state(f, c, min(c.m_lim, P_d - c.e_lo))
     P = float(R1.P_b[k])
-    return min(lo, P), max(hi, P), bool(r.ok)
+    return min(lo, P), max(hi, P), c.ok
 
 
 def step_energy(P_b):
