@@ -158,6 +158,17 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
         )
 
 
+def _first(bad) -> tuple:
+    """The index (a tuple; () for a scalar) of the first True of the bool array `bad`."""
+    return tuple(int(i) for i in np.argwhere(bad)[0])
+
+
+def _index_text(at: tuple) -> str:
+    """The text `[i, j]` of an index (empty for a scalar's): where in a batch or a route an
+    error lies."""
+    return f"[{', '.join(str(i) for i in at)}]" if at else ""
+
+
 def _route_leaves(route: Route) -> dict | None:
     """The leaves of `route` as float64 arrays (the mask as it is), None where one is traced
     (under `jit`); a leaf that is not numbers is a `RouteError` naming it."""
@@ -206,9 +217,8 @@ def _check_route_shapes(leaves: dict) -> None:
                      (np.any(mask != prefix, axis=-1), "must keep the first nodes (the padding, "
                       "False, follows them)")):
         if np.any(bad):
-            at = np.argwhere(bad)[0] if bad.ndim else ()
-            idx = f"[{', '.join(str(int(i)) for i in at)}]" if len(at) else ""
-            raise RouteError(f"route mask{idx}: {why} (it keeps {int(n[tuple(at)])} of "
+            at = _first(bad)
+            raise RouteError(f"route mask{_index_text(at)}: {why} (it keeps {int(n[at])} of "
                              f"{shape[-1]})")
 
 
@@ -218,9 +228,8 @@ def _check_route_length(leaves: dict) -> None:
     with np.errstate(invalid="ignore"):
         bad = ~(np.abs(leaves["length"] - want) <= 1e-6 * np.maximum(np.abs(want), 1.0))
     if np.any(bad):
-        at = tuple(np.argwhere(bad)[0]) if bad.ndim else ()
-        idx = f"[{', '.join(str(int(i)) for i in at)}]" if at else ""
-        raise RouteError(f"route length{idx}: must be (kept nodes - 1) * ds = "
+        at = _first(bad)
+        raise RouteError(f"route length{_index_text(at)}: must be (kept nodes - 1) * ds = "
                          f"{float(want[at]):.6g} m (got {float(leaves['length'][at])!r})")
 
 
@@ -259,9 +268,8 @@ def check_route(route: Route) -> Route:
         with np.errstate(invalid="ignore"):
             bad = np.broadcast_to(where, x.shape) & ~ok(x)
         if np.any(bad):
-            at = np.argwhere(bad)[0]
-            idx = f"[{', '.join(str(int(i)) for i in at)}]" if at.size else ""
-            raise RouteError(f"route {field}{idx}: {why} (got {float(x[tuple(at)])!r})")
+            at = _first(bad)
+            raise RouteError(f"route {field}{_index_text(at)}: {why} (got {float(x[at])!r})")
     _check_route_length(leaves)
     return route
 
