@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import numbers
 import os
 import re
 import sys
@@ -166,9 +167,11 @@ def comma_list(text: str, what: str | None = None) -> list[str]:
 
 
 def format_or_dash(x, fmt: str) -> str:
-    """x formatted with fmt (e.g. '8.3f'); a right-aligned '-' of the same width for None."""
+    """x formatted with fmt (e.g. '8.3f'); a right-aligned '-' of the same width for None or
+    a number that is not finite (an unfinished run's trip time: it printed nan)."""
     width = int(re.match(r"[+-]?(\d*)", fmt).group(1) or 0)
-    return "-".rjust(width) if x is None else format(x, fmt)
+    missing = x is None or (isinstance(x, numbers.Real) and not math.isfinite(x))
+    return "-".rjust(width) if missing else format(x, fmt)
 
 
 def _print_table(pairs: list[tuple[str, str]]) -> None:

@@ -331,3 +331,13 @@ def test_an_in_process_sweep_uses_the_compilation_cache(monkeypatch, workers, ca
                               out=None, resume=False, quiet=True, no_report=True)
     assert sweep.cmd_sweep(args) == 0
     assert bool(calls) is called
+
+
+def test_a_missing_or_not_finite_number_prints_as_a_dash():
+    """Tables print '-' where a value is missing or not a number (an unfinished run's trip
+    time, NaN: `compare` printed nan), right-aligned to the column's width."""
+    from jaxems.cli import format_or_dash
+
+    assert format_or_dash(None, "8.1f") == format_or_dash(float("nan"), "8.1f") == "       -"
+    assert format_or_dash(float("inf"), "+9.3f") == "        -"
+    assert format_or_dash(152.38, "8.1f") == "   152.4" and format_or_dash(3, "d") == "3"
