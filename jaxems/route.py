@@ -245,9 +245,8 @@ def check_route(route: Route) -> Route:
     leaves = _route_leaves(route)
     if leaves is None:
         return route
-    if not all(hasattr(x, "shape") and hasattr(x, "dtype") for x in route):
-        route = Route(*(x if hasattr(x, "shape") and hasattr(x, "dtype") else np.asarray(x)
-                        for x in route))
+    if not all(hasattr(x, "dtype") for x in route):
+        route = Route(*(x if hasattr(x, "dtype") else np.asarray(x) for x in route))
     keep = leaves["mask"]
     rules = {
         "ds": (lambda x: np.isfinite(x) & (x > 0), "must be a finite distance > 0 m", True),

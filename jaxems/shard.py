@@ -256,24 +256,26 @@ def one_at_a_time(f: Callable, sequential: bool | None = None) -> Callable:
     return g
 
 
-def _check_batch(args) -> int:
+def _check_batch(args, who: str = "map_batch", error: type = ValueError) -> int:
+    """B, the leading size every leaf of `args` shares (B >= 1); else `error` naming `who` and
+    the first leaf that breaks it (map_batch's batch, simulate_batch's vehicles)."""
     leaves, _ = jax.tree_util.tree_flatten_with_path(args)
     if not leaves:
-        raise ValueError("map_batch: args has no array leaves")
-    sizes = {}
+        raise error(f"{who}: args has no array leaves")
+    first = B = None
     for path, leaf in leaves:
         shape = np.shape(leaf)
-        name = jax.tree_util.keystr(path) or "args"
+        name = jax.tree_util.keystr(path).lstrip(".") or "args"
         if len(shape) == 0:
-            raise ValueError(f"map_batch: leaf {name} is a scalar; every leaf of args needs a "
-                             f"leading batch axis (pass per-batch constants as shared)")
-        sizes.setdefault(shape[0], name)
-    if len(sizes) > 1:
-        desc = ", ".join(f"{name}: {b}" for b, name in sizes.items())
-        raise ValueError(f"map_batch: leaves of args have different leading sizes ({desc})")
-    B = next(iter(sizes))
+            raise error(f"{who}: {name} has shape () (a scalar), where every leaf needs a leading "
+                        f"batch axis (pass per-batch constants as shared)")
+        if B is None:
+            first, B = name, shape[0]
+        elif shape[0] != B:
+            raise error(f"{who}: {name} has shape {shape}, where every leaf has the batch's "
+                        f"leading size {B} ({first}'s): different leading sizes")
     if B < 1:
-        raise ValueError("map_batch: empty batch (leading size 0)")
+        raise error(f"{who}: an empty batch (leading size 0)")
     return B
 
 

@@ -831,22 +831,14 @@ ECO_STEPS_MARGIN = 0.15  # `steps_for_batch`: multilevel-eco's steps beyond its 
 
 def _check_vehicle_batch(vehicles) -> int:
     """B, the batch size of `simulate_batch`'s vehicles: a `VehicleParams` whose every leaf
-    has the same leading size B >= 1; else a `VehicleError` naming the field."""
+    has the same leading size B >= 1 (`shard._check_batch`); else a `VehicleError`."""
     if not isinstance(vehicles, VehicleParams):
         raise VehicleError(f"simulate_batch: vehicles must be a VehicleParams batch "
                            f"(stack_vehicles) (got {type(vehicles).__name__})")
     if np.ndim(vehicles.mass) != 1:
         raise VehicleError("simulate_batch: vehicles with one leading batch axis expected "
                            "(stack_vehicles; for one vehicle use simulate)")
-    B = np.shape(vehicles.mass)[0]
-    if B < 1:
-        raise VehicleError("simulate_batch: an empty batch of vehicles")
-    for k in VehicleParams._fields:
-        sh = np.shape(getattr(vehicles, k))
-        if not sh or sh[0] != B:
-            raise VehicleError(f"simulate_batch: {k} has shape {sh}, where every field has the "
-                               f"batch's leading size {B} (mass's; stack_vehicles)")
-    return B
+    return shard._check_batch(vehicles, "simulate_batch", VehicleError)
 
 
 def check_dt(dt) -> float:

@@ -22,7 +22,7 @@ from jaxems import xla
 from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
-from jaxems.reference import (ref_dp, ref_end, ref_fuel_power, ref_gears,
+from jaxems.reference import (_pb_of_pbi, _veh, ref_dp, ref_end, ref_fuel_power, ref_gears,
                                ref_minimal_switching, ref_steps)
 
 VP = load_vehicle()
@@ -318,7 +318,7 @@ def test_limits_solution_is_feasible_and_the_dps_on_random_hills(speeds, grades,
     assert not status & b.PIECES_EXHAUSTED, b.status_names(status)
     gears = ref_gears(VP_SMALL, P_d, v, w)
     np.testing.assert_array_equal(np.asarray(r.gear), gears)
-    beta = float(VP_SMALL.beta)
+    f = _veh(VP_SMALL)
     wk = np.asarray(VP_SMALL.gear_ratio)[gears] * float(VP_SMALL.r_d) * v
     sel, fuel, E = np.asarray(r.sel), 0.0, [E0]
     pid = np.asarray(b.piece_ids(np.asarray(r.boundaries), len(v)))
@@ -330,8 +330,7 @@ def test_limits_solution_is_feasible_and_the_dps_on_random_hills(speeds, grades,
             assert abs(E[-1] - cur) <= 1e-3 * E_max
         f_k = []
         for dE, E_f in ((r.dE_plus[k], r.E_f_plus[k]), (r.dE_minus[k], r.E_f_minus[k])):
-            P_bi = -float(dE) / dt  # internal battery power, P_b + beta P_b^2 (eq. 7)
-            P_b = 2.0 * P_bi / (1.0 + np.sqrt(1.0 + 4.0 * beta * P_bi))
+            P_b = _pb_of_pbi(f, -float(dE) / dt)  # from the internal power (eq. 7)
             f_k.append(float(ref_fuel_power(VP_SMALL, P_d[k], wk[k], gears[k],
                                             np.array([P_b]))[0]) * dt)
             assert f_k[-1] == pytest.approx(float(E_f), rel=1e-9, abs=1e-3), k

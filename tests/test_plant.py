@@ -303,13 +303,14 @@ def test_unfinished_route_is_reported():
                  prediction=PRED, plant=res)
     assert len(r.trace_columns()["t_s"]) == N_PLANT
     assert r.as_dict()["trip_time_s"] != r.as_dict()["trip_time_s"]  # NaN
-    done = S._metrics(run(VP, -2.2), PRED, VP, -2.2, S.OK)
+    finished = run(VP, -2.2)
+    done = S._metrics(finished, PRED, VP, -2.2, S.OK)
     assert float(done.trip_time_s) > 0 and int(done.status) == S.OK
     # a prediction whose trip does not fit its steps (simulate_batch given too few: it ran,
     # marked ok, on a prediction cut short) says so
     T = PRED.v.shape[0]
     for trip, short in ((T * float(PRED.dt) - 1e-6, False), (T * float(PRED.dt), True)):
-        m = S._metrics(run(VP, -2.2), PRED._replace(trip_time=trip), VP, -2.2, S.OK)
+        m = S._metrics(finished, PRED._replace(trip_time=trip), VP, -2.2, S.OK)
         assert bool(int(m.status) & S.STEPS_SHORT) is short
     assert S.status_text(S.STEPS_SHORT) == "level3-steps-short"
 
