@@ -6,7 +6,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.jaxems-installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test test-random bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,6 +23,12 @@ demo: $(STAMP)
 # first, the modules that reuse test_strategies' compilations from the shared cache last)
 test: $(STAMP)
 	$(PY) -m pytest -n 2 --dist loadfile --no-loadscope-reorder -p no:cacheprovider
+
+# the property tests (hypothesis) with new random examples, not the fixed set `make test`
+# replays: from time to time, to find what that set never draws; SEED=N replays a run
+test-random: $(STAMP)
+	$(PY) -m pytest -n 2 --dist loadfile -p no:cacheprovider -m hypothesis \
+		--hypothesis-profile=random $(if $(SEED),--hypothesis-seed=$(SEED))
 
 bench: $(STAMP)
 	$(PY) benchmarks/bench_level1.py

@@ -28,6 +28,10 @@ jax.config.update("jax_enable_x64", True)
 from hypothesis import settings  # noqa: E402
 
 settings.register_profile("jaxems", max_examples=40, deadline=None, derandomize=True)
+# `make test-random` (pytest --hypothesis-profile=random [--hypothesis-seed=N]): new examples
+# each run, the property tests' own numbers of them; what a fixed set never draws
+settings.register_profile("random", max_examples=40, deadline=None, derandomize=False,
+                          database=None, print_blob=True)
 settings.load_profile("jaxems")
 
 
