@@ -458,7 +458,7 @@ def draw_pieces(data):
     cuts = np.sort(data.draw(hst.lists(hst.integers(0, n), min_size=K - 1, max_size=K - 1)))
     pid = np.searchsorted(cuts, np.arange(n), side="right").astype(np.int32)
     floats = lambda lo, hi, m: np.array(data.draw(hst.lists(  # noqa: E731
-        hst.floats(lo, hi, allow_nan=False, allow_subnormal=False), min_size=m, max_size=m)))
+        hst.floats(lo, hi, allow_nan=False), min_size=m, max_size=m)))
     return n, K, E_max, VP.replace(E_b_max=E_max, soc0=0.5), pid, floats
 
 
@@ -726,7 +726,7 @@ def test_guard_lambda_is_each_pieces_side_where_it_jumps(data):
                                       max_size=_GK - 1), "cuts"))
     bnd = np.array([0, *cuts, _GT])
     floats = lambda lo, hi, n: np.asarray(data.draw(hst.lists(  # noqa: E731
-        hst.floats(lo, hi, allow_subnormal=False), min_size=n, max_size=n)))
+        hst.floats(lo, hi), min_size=n, max_size=n)))
     lam_lo = floats(-5.9, -1.0, _GK)
     lam_hi = lam_lo + floats(0.0, 0.5, _GK)
     lam = floats(-6.0, -0.3, _GT)

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from jaxems import plant as P
@@ -518,7 +518,7 @@ _protect_vmap = xla.jit(jax.vmap(_protect, in_axes=(None, 0, None, None, None, N
                                                      None, None)))
 _S = ps.N_MODES * VP.gear_ratio.shape[0]
 # a plan's battery power holding the motor in the engine's states (`plant.deliverable`), or none
-PB_PLAN = st.one_of(st.just(float("inf")), st.floats(-150e3, 150e3, allow_subnormal=False))
+PB_PLAN = st.one_of(st.just(float("inf")), st.floats(-150e3, 150e3))
 
 
 @settings(max_examples=60, deadline=None)
@@ -569,9 +569,9 @@ def assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req,
 
 
 @settings(max_examples=60, deadline=None)
-@given(v=st.floats(0.0, 30.0, allow_subnormal=False), grade=st.floats(-0.3, 0.3),
-       extra=st.floats(-50e3, 400e3, allow_subnormal=False),  # XLA's CPU flushes them to 0
-       E_frac=st.floats(0.0, 1.0, allow_subnormal=False), lam=st.floats(-4.5, -1.0),
+@given(v=st.floats(0.0, 30.0), grade=st.floats(-0.3, 0.3),
+       extra=st.floats(-50e3, 400e3),
+       E_frac=st.floats(0.0, 1.0), lam=st.floats(-4.5, -1.0),
        mass=st.floats(12e3, 40e3),
        s_req=st.integers(0, _S - 1), s_cur=st.integers(0, _S - 1), hybrid=st.booleans(),
        pb_plan=PB_PLAN)
@@ -586,7 +586,7 @@ def test_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s
 
 @settings(max_examples=60, deadline=None)
 @given(v=st.floats(1.0, 2.68), grade=st.floats(0.2, 0.3),
-       extra=st.floats(-30e3, 400e3, allow_subnormal=False),
+       extra=st.floats(-30e3, 400e3),
        E_frac=st.floats(0.0, 1.0), mass=st.floats(12e3, 40e3), s_req=st.integers(0, _S - 1),
        hybrid=st.booleans(), combined=st.booleans())
 def test_protection_in_a_crawl_up_a_steep_climb(v, grade, extra, E_frac, mass, s_req, hybrid,
@@ -625,7 +625,7 @@ def test_block_search_is_searchsorted(n, data):
     (Subnormal values are left out: XLA's CPU flushes them to zero, numpy does not.)"""
     ints = data.draw(st.lists(st.integers(0, 40), min_size=n, max_size=n))
     a = np.sort(np.asarray(ints, np.float64)) * 2.5
-    floats = functools.partial(st.floats, allow_subnormal=False)
+    floats = st.floats
     y = np.asarray(data.draw(st.lists(floats(-5.0, 5.0), min_size=n, max_size=n)))
     xs = [*a[[0, n // 2, n - 1]], -1.0, a[-1] + 1.0,
           *data.draw(st.lists(floats(-2.0, 105.0), min_size=1, max_size=6))]
@@ -745,14 +745,18 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
 
 
 @settings(max_examples=6, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 40e3),
+@example(seed=0, mass=36e3, battery=0.2e6, hybrid=False)  # the heaviest, without the motor
+@given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 36e3),
        battery=st.floats(0.2e6, 4e6), hybrid=st.booleans())
 def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, hybrid):
     """A launch at the foot of a 30 % climb, the script asking for a gear higher every 8 s
     (and a random state at one step in eight): a gear switch's open second there costs about
     2.9 m/s, so the truck cannot shift up out of gear 1 and crawls up at gear 1's top speed
     (`plant.held_top_speed`), never stalling, where it ran past that speed, was switched
-    up, stalled within the second and launched again. The plant equals its loop."""
+    up, stalled within the second and launched again. The plant equals its loop.
+    Up to 36 t: the engine slipping its clutch at idle pulls 1200 N m x 16.46 x 5.466 / m =
+    108 kN in gear 1, what 30 % asks of 37.8 t, so a heavier truck without the motor slows
+    along the climb (37.85 t: 0.433 -> 0.400 m/s, found by a random-seed run)."""
     rng = np.random.default_rng(seed)
     vp = truck(hybrid, mass=mass, E_b_max=battery)
     drive = ps.MC if hybrid else ps.ME
