@@ -703,6 +703,61 @@ def ref_bisect(vp: VehicleParams, P_d, v, w, mask=None, dt=1.0, E_b0=None, E_b_e
                       ok=ok, steps=model.steps(lam))
 
 
+class RefHorizon(NamedTuple):
+    """I3's window without an end value: lam_lo, lam_hi the final bracket; E_mix (T+1,) the
+    two sides' paths mixed at fraction r on B+ (I2a); margin its smallest distance to the
+    limits (J, negative: crossed); event: no costate keeps the path within the limits (I3a);
+    t_event: the boundary of its largest violation (T + 1 none); limit: the limit crossed
+    there (J)."""
+
+    lam_lo: float
+    lam_hi: float
+    r: float
+    E_mix: np.ndarray
+    margin: float
+    event: bool
+    t_event: int
+    limit: float
+
+
+def ref_horizon(vp: VehicleParams, P_d, v, gear, ok, dt, E_b0, E_min, E_max, tol,
+                lam_bracket=LAM_BRACKET, n_iter: int = 40, n_mix: int = 50) -> RefHorizon:
+    """I3 (section 5.3) as loops: the costate that maximises the smaller of the distances of
+    E_b to E_min and to E_max (d_low falls and d_up rises with lambda_b: bisection on which
+    is larger, `n_iter` halvings), then the paths of the bracket's ends mixed (I2a, `n_mix`
+    halvings of the fraction) to balance the two; the mix's largest violation is an event
+    (I3a) where it exceeds tol (J), after the start. Gears given, as `ref_steps` takes
+    them."""
+    model = _Level2Model(vp, P_d, v, gear, ok, dt, 33, 12)
+
+    def path(lam):
+        return np.concatenate([[E_b0], E_b0 + np.cumsum(model.steps(lam).dE)])
+
+    def dists(E):
+        return E.min() - E_min, E_max - E.max()
+
+    lo, hi = (float(x) for x in lam_bracket)
+    for _ in range(n_iter):
+        mid = 0.5 * (lo + hi)
+        d_low, d_up = dists(path(mid))
+        lo, hi = (mid, hi) if d_low > d_up else (lo, mid)
+    E_plus, E_minus = path(lo), path(hi)
+    ra, rb = 0.0, 1.0
+    for _ in range(n_mix):
+        r = 0.5 * (ra + rb)
+        d_low, d_up = dists(E_minus + r * (E_plus - E_minus))
+        ra, rb = (r, rb) if d_low < d_up else (ra, r)
+    r = 0.5 * (ra + rb)
+    E_mix = E_minus + r * (E_plus - E_minus)
+    margin = min(dists(E_mix))
+    viol = np.maximum(np.maximum(E_mix - E_max, E_min - E_mix), 0.0)
+    tc = int(np.argmax(viol))
+    event = margin < -tol and tc > 0
+    return RefHorizon(lam_lo=lo, lam_hi=hi, r=r, E_mix=E_mix, margin=float(margin),
+                      event=event, t_event=tc if event else len(E_mix) - 1,
+                      limit=E_max if E_mix[tc] > E_max else E_min)
+
+
 def ref_fuel_power(vp: VehicleParams, P_d, w, gear, P_b):
     """Fuel power (W) of the best mode for battery power P_b (array) at gear speed w: NumPy.
 

@@ -23,7 +23,7 @@ from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
 from jaxems.reference import (_pb_of_pbi, _veh, ref_dp, ref_end, ref_fuel_power, ref_gears,
-                               ref_minimal_switching, ref_steps)
+                               ref_horizon, ref_minimal_switching, ref_steps)
 
 VP = load_vehicle()
 W1100 = 1100 * RPM
@@ -552,6 +552,49 @@ def test_horizon_event_I3a():
     E = np.asarray(h.E_b)
     assert abs(E[int(h.t_event)] - 1e6) <= 1e-3 * 1e6
     assert E[: int(h.t_event) + 1].max() <= 1e6 + 1.0
+
+
+@pytest.mark.parametrize("v1, g1, g2, E0, E_max", [
+    (10.0, -0.01, -0.05, 2e5, 1e6),  # a descent fills the battery whatever lambda_b
+    (10.0, 0.0, -0.02, 2e5, 1e6),  # at a guard, the two limits crossed alike (a tie)
+    (20.0, 0.0, -0.05, 2e5, 1e6),
+    (10.0, 0.02, -0.02, 8e5, 1e6),
+    (16.7, 0.01, -0.01, 2e6, 4e6),  # no event: the climb and the descent fit a 4 MJ battery
+])
+def test_horizon_equals_its_loop_and_its_event_ends_on_the_limit(v1, g1, g2, E0, E_max):
+    """I3 against its loops (`reference.ref_horizon`): the margin of the mixed paths, and
+    whether a limit is crossed whatever lambda_b (I3a); no costate and mix on a grid (pairs of
+    neighbouring costates, the mix in steps of 1/40) keeps the battery farther from its
+    limits. Under I3a the event is the largest violation of the mixed paths, and the first
+    sub-problem's path stays within the limits up to it and ends on the limit crossed there.
+    At a guard the mix balances a violation of each limit, so that two events tie and
+    rounding picks one: either is an event (the first sub-problem, with I1 inside, holds the
+    limits before it)."""
+    vp = VP.replace(E_b_max=E_max)
+    P_d, v = make_route(vp, [(40, v1, g1), (40, 18.0, g2), (40, 16.0, 0.0)])
+    w = np.full(T_H, W1100)
+    h = b.level2_horizon(vp, P_d, v, w, None, DT_H, E0)
+    gear, ok = (np.asarray(x) for x in b.select_gears(vp, P_d, v, w, np.ones(T_H, bool)))
+    want = ref_horizon(vp, P_d, v, gear, ok, DT_H, E0, 0.0, E_max, 1e-6 * E_max)
+    assert float(h.margin) == pytest.approx(want.margin, abs=1e-6 * E_max)
+    assert bool(int(h.status) & b.I3A) == want.event == (E_max < 2e6)
+    # the grid: the mix of each two neighbouring costates' paths at every fraction
+    paths = np.array([np.concatenate([[E0], E0 + np.cumsum(ref_steps(
+        vp, P_d, v, gear, ok, lam, DT_H).dE)]) for lam in np.linspace(-6.0, -0.3, 80)])
+    r = np.linspace(0.0, 1.0, 41)[:, None, None]
+    mixes = paths[1:][None] + r * (paths[:-1] - paths[1:])[None]
+    grid = np.max(np.minimum(mixes.min(axis=-1), E_max - mixes.max(axis=-1)))
+    assert float(h.margin) >= grid - 1e-6 * E_max
+    if not want.event:
+        assert int(h.t_event) == T_H
+        np.testing.assert_allclose(np.asarray(h.E_b), want.E_mix, atol=1e-3 * E_max)
+        return
+    viol = np.maximum(np.maximum(want.E_mix - E_max, -want.E_mix), 0.0)
+    te = int(h.t_event)
+    assert viol[te] >= viol.max() - 1e-3 * E_max
+    E = np.asarray(h.E_b)[: te + 1]
+    assert E[-1] == pytest.approx(E_max if want.E_mix[te] > E_max else 0.0, abs=1e-3 * E_max)
+    assert E.min() >= -1e-3 * E_max and E.max() <= E_max * (1 + 1e-3)
 
 
 def test_horizon_on_guard_I3b():
