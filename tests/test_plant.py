@@ -474,8 +474,9 @@ def test_final_braking_stores_no_more_than_the_trip_started_with(mass, lam, soc0
     E_c = np.append(np.asarray(capped.trace.E_b), float(capped.final.E_b))
     E_f = np.append(np.asarray(free.trace.E_b), float(free.final.E_b))
     before = np.append(s < final_s, False)
-    # the same run up to the final braking
-    np.testing.assert_array_equal(E_c[before], E_f[before])
+    # the same run up to the final braking (equal to the bit here; to rounding, as another
+    # code generation gives it: XLA at -O0 moved 37 of 157 values by 1 ulp)
+    np.testing.assert_allclose(E_c[before], E_f[before], rtol=1e-12, atol=0)
     # then no step ends above the start's energy or above where it began, whichever is higher
     after = np.flatnonzero(~before[:-1])
     assert after.size > 0
