@@ -8,7 +8,9 @@ sweep's vehicles (20 / 30 / 40 t x 2 / 4 / 8 MJ) and routes by default. Per comb
 route: corrected fuel (fuel + lambda_b delta E_b) summed over the vehicles, how many end more
 than 1 % of their battery from their start, how many trips take more than 1 % longer than
 their Level 3 prediction, and the longest. Float64; one `simulate_batch` per combination and
-route, each combination compiled anew (options are static).
+route. A combination that differs only in the numbers of `strategies.TRACED_OPTIONS` (the
+A-ECMS's five among them) runs the program compiled for the first; the other options are
+compiled in, each combination anew.
 
     .venv/bin/python experiments/option_grid.py --strategy baseline --set ecms_horizon=1,3
         [--set dwell=3,5] [--routes short_track,LongHaul,RegionalDelivery,UrbanDelivery]

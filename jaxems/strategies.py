@@ -106,7 +106,9 @@ STATUS_NAMES = {INFEASIBLE_ROUTE: "infeasible-route", UNFINISHED: "unfinished",
 
 
 class Options(NamedTuple):
-    """Static options of the strategies (hashable; a change recompiles).
+    """Options of the strategies (hashable). A change of one recompiles, but for the numbers
+    in `TRACED_OPTIONS`, which `simulate` and `simulate_batch` pass to the compiled program
+    as arguments.
 
     n_iter: multilevel iterations (>= 1); h1: Level 1 MPC horizon (samples); h2: Level 2 MPC
     window (samples); t2: Level 2 MPC sample time (samples); lam0, kp, soc_ref, ke_share,
@@ -768,8 +770,24 @@ SINGLE_ELEMENTAL = {name: name not in ("multilevel-mpc", "multilevel-eco") for n
 BATCH_ELEMENTAL = {name: SINGLE_ELEMENTAL[name] and name != "conventional" for name in STRATEGIES}
 
 
-def _run(route, vp, params, *, strategy, dt, n_steps, opts):
-    return _kernel(strategy, dt, n_steps, opts)(route, vp, params)
+# the options whose values the programs take as arguments (weakly typed scalars, as the Python
+# floats they were), so that a new value runs the program compiled for the last one: numbers
+# that no shape, loop count or branch of the program depends on. The other options are
+# compiled in (`Options`: structure, counts, switches, and the two that may be None).
+TRACED_OPTIONS = ("lam0", "kp", "ke_share", "dwell", "ecms_horizon", "dp_penalty", "tau_E",
+                  "eco_time_ratio", "eco_overspeed_kmh", "mpc_end_reserve", "end_reserve")
+
+
+def split_options(opts: Options) -> tuple[Options, dict]:
+    """(key, values): opts with its `TRACED_OPTIONS` at their defaults, the static key a
+    program is compiled for, and those options' values (floats), its arguments; a program
+    puts them back with `key._replace(**values)`."""
+    values = {k: float(getattr(opts, k)) for k in TRACED_OPTIONS}
+    return opts._replace(**{k: Options._field_defaults[k] for k in TRACED_OPTIONS}), values
+
+
+def _run(route, vp, params, values, *, strategy, dt, n_steps, opts):
+    return _kernel(strategy, dt, n_steps, opts._replace(**values))(route, vp, params)
 
 
 _RUN = {e: jit(_run, elemental=e, static_argnames=("strategy", "dt", "n_steps", "opts"))
@@ -778,25 +796,38 @@ _RUN = {e: jit(_run, elemental=e, static_argnames=("strategy", "dt", "n_steps", 
 
 def _run_one(route, vp, params, *, strategy, dt, n_steps, opts):
     """One run, compiled with the strategy's code generator (`SINGLE_ELEMENTAL`)."""
-    return _RUN[SINGLE_ELEMENTAL[strategy]](route, vp, params, strategy=strategy, dt=dt,
-                                            n_steps=n_steps, opts=opts)
+    key, values = split_options(opts)
+    return _RUN[SINGLE_ELEMENTAL[strategy]](route, vp, params, values, strategy=strategy,
+                                            dt=dt, n_steps=n_steps, opts=key)
 
 
 @functools.lru_cache(maxsize=64)
-def _item_fn(strategy: str, dt: float, n_steps: int, opts: Options):
-    """The metrics of one vehicle, with (route, switching params) shared: `shard.map_batch`'s
-    item function (cached, so that repeated batches reuse one compilation)."""
-    f = _kernel(strategy, dt, n_steps, opts)
-    return lambda shared, vp: f(shared[0], vp, shared[1]).metrics
+def _item_fn(strategy: str, dt: float, n_steps: int, key: Options):
+    """The metrics of one vehicle, with (route, switching params, `split_options`' values)
+    shared: `shard.map_batch`'s item function (cached, so that repeated batches reuse one
+    compilation; key: the options' static part)."""
+    def item(shared, vp):
+        route, params, values = shared
+        return _kernel(strategy, dt, n_steps, key._replace(**values))(route, vp, params).metrics
+
+    return item
 
 
 _profile_batch = jit(jax.vmap(l3.velocity_profile, in_axes=(None, 0, 0)))
 
 
 @functools.lru_cache(maxsize=16)
-def _eco_trip_fn(dt: float, n_steps: int, opts: Options):
-    return jit(jax.vmap(lambda route, vp: eco_speed(route, vp, dt, n_steps, opts)[0].trip_time,
-                        in_axes=(None, 0)))
+def _eco_trip_jit(dt: float, n_steps: int, key: Options):
+    def trip(route, vp, values):
+        return eco_speed(route, vp, dt, n_steps, key._replace(**values))[0].trip_time
+
+    return jit(jax.vmap(trip, in_axes=(None, 0, None)))
+
+
+def eco_trip_times(route, vehicles, dt: float, n_steps: int, opts: Options):
+    """(B,) s: the trip times of multilevel-eco's speed profiles for a batch of vehicles."""
+    key, values = split_options(opts)
+    return _eco_trip_jit(float(dt), n_steps, key)(route, vehicles, values)
 
 
 def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
@@ -820,7 +851,7 @@ def steps_for_batch(route: Route, vehicles: VehicleParams, dt: float = 1.0,
         else:  # with a margin: the run's own optimisation (another program, another step
             # count) need not land on this one's optimum (a non-convex problem; at
             # eco_lambda_t = 0 in float32 on the short track 1683 s against 1513 here)
-            eco = float(jnp.max(_eco_trip_fn(float(dt), n, o)(route, vehicles)))
+            eco = float(jnp.max(eco_trip_times(route, vehicles, dt, n, o)))
             trip = max(trip, eco * (1.0 + ECO_STEPS_MARGIN))
         n = max(n, l3.steps_for(trip, dt))
     return n
@@ -993,9 +1024,10 @@ def simulate_batch(route: Route, vehicles: VehicleParams, strategy: str, dt: flo
     if chunk == "auto":
         chunk = default_chunk(strategy, n_steps=int(n_steps),
                               itemsize=np.asarray(vehicles.mass).dtype.itemsize)
-    fn = _item_fn(strategy, dt, int(n_steps), opts)
-    m = shard.map_batch(fn, vehicles, shared=(route, params), chunk=chunk, devices=devices,
-                        elemental=BATCH_ELEMENTAL[strategy])
+    key, values = split_options(opts)
+    fn = _item_fn(strategy, dt, int(n_steps), key)
+    m = shard.map_batch(fn, vehicles, shared=(route, params, values), chunk=chunk,
+                        devices=devices, elemental=BATCH_ELEMENTAL[strategy])
     return _fields(m, VehicleParams(*(np.asarray(x) for x in vehicles)))
 
 

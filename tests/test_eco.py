@@ -607,7 +607,7 @@ def test_strategy_step_grid_holds_a_slow_eco_trip():
     vps = stack_vehicles([vp])
     t3 = float(S._profile_batch(route, vps, jnp.full((1, route.grade.shape[-1]),
                                                      vp.w_pred)).trip_time[0])
-    t_eco = float(S._eco_trip_fn(1.0, n3, opts)(route, vps)[0])
+    t_eco = float(S.eco_trip_times(route, vps, 1.0, n3, opts)[0])
     assert t_eco > 1.05 * t3  # it is slower
     # with a margin for the run's own optimum, which another program need not land on
     assert n >= (1 + S.ECO_STEPS_MARGIN) * t_eco and n >= n3

@@ -668,6 +668,35 @@ def test_an_option_a_strategy_ignores_is_refused(runs):
     assert res.fields["trip_time_s"] == runs["conventional"]["trip_time_s"]
 
 
+def test_traced_options_take_new_values_without_compiling(runs):
+    """The options in `TRACED_OPTIONS` are arguments of the compiled program: the A-ECMS's
+    five at other values run the program the module's run compiled (single runs and a batch)
+    and give what a program with those values compiled in gives; every traced option is a
+    number the strategies read."""
+    new = {"lam0": -2.6, "kp": 9.0, "ke_share": 0.2, "dwell": 2.0, "ecms_horizon": 5.0}
+    assert set(new) | {"dp_penalty", "tau_E", "eco_time_ratio", "eco_overspeed_kmh",
+                       "mpc_end_reserve", "end_reserve"} == set(S.TRACED_OPTIONS)
+    assert all(isinstance(S.Options._field_defaults[k], float) for k in S.TRACED_OPTIONS)
+    run_jit = S._RUN[S.SINGLE_ELEMENTAL["baseline"]]
+    n0 = run_jit._cache_size()
+    got = S.simulate("short_track", VP, "baseline", **new)
+    assert run_jit._cache_size() == n0  # the module's program
+    assert got["fuel_J"] != runs["baseline"]["fuel_J"]  # the values count
+    route = load_route("short_track")
+    opts = S.resolve_options(S.make_options(**new), VP)
+    n_steps = S.steps_for_batch(route, VP)
+    want = xla.jit(S._kernel("baseline", 1.0, n_steps, opts))(
+        route, VP, S.sw.checked_params(None, np.float64)).metrics
+    for f in ("fuel_J", "delta_Eb_J", "trip_time_s", "mode_switches", "gear_switches"):
+        assert got[f] == pytest.approx(float(getattr(want, f)), rel=1e-12, abs=1e-9), f
+    batch = S.simulate_batch(route, stack_vehicles([VP] * 2), "baseline", options=new)
+    n_items = S._item_fn.cache_info().currsize
+    batch_default = S.simulate_batch(route, stack_vehicles([VP] * 2), "baseline")
+    assert S._item_fn.cache_info().currsize == n_items  # the same program
+    assert batch["fuel_J"][0] == pytest.approx(got["fuel_J"], rel=1e-12)
+    assert batch_default["fuel_J"][0] == pytest.approx(runs["baseline"]["fuel_J"], rel=1e-12)
+
+
 def test_same_open_time_only_for_vehicles_whose_open_times_are_equal():
     """same_open_time=True selects Level 1's relaxation for dt_M == dt_G; for a vehicle whose
     open times differ it is an error naming the option, not a silently different run; left

@@ -96,7 +96,7 @@ def test_strategies_pick_the_code_generator_per_strategy(monkeypatch):
     monkeypatch.setattr(S, "_RUN", {e: (lambda *a, e=e, **k: called.append(e))
                                     for e in (True, False)})
     for name in S.STRATEGIES:
-        S._run_one(None, None, None, strategy=name, dt=1.0, n_steps=1, opts=None)
+        S._run_one(None, None, None, strategy=name, dt=1.0, n_steps=1, opts=S.Options())
     assert called == [S.SINGLE_ELEMENTAL[name] for name in S.STRATEGIES]
 
     def spy(fn, args, *, elemental, **kw):
