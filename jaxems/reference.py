@@ -707,8 +707,8 @@ class RefHorizon(NamedTuple):
     """I3's window without an end value: lam_lo, lam_hi the final bracket; E_mix (T+1,) the
     two sides' paths mixed at fraction r on B+ (I2a); margin its smallest distance to the
     limits (J, negative: crossed); event: no costate keeps the path within the limits (I3a);
-    t_event: the boundary of its largest violation (T + 1 none); limit: the limit crossed
-    there (J)."""
+    t_event: the boundary of its largest violation (T where there is none, as the kernel
+    gives it; `event` tells the two apart); limit: the limit crossed there (J)."""
 
     lam_lo: float
     lam_hi: float
