@@ -623,13 +623,12 @@ def test_block_search_is_searchsorted(n, data):
     values, for values before, within (on the values themselves) and after the array; and
     `_interp`, and `powertrain.interp` (its search compares with every node) on all the values
     at once, give jnp.interp's values to the last bit, where two nodes coincide too.
-    (Subnormal values are left out: XLA's CPU flushes them to zero, numpy does not.)"""
+    (Subnormal values are left out, as in every property test: tests/conftest.py.)"""
     ints = data.draw(st.lists(st.integers(0, 40), min_size=n, max_size=n))
     a = np.sort(np.asarray(ints, np.float64)) * 2.5
-    floats = st.floats
-    y = np.asarray(data.draw(st.lists(floats(-5.0, 5.0), min_size=n, max_size=n)))
+    y = np.asarray(data.draw(st.lists(st.floats(-5.0, 5.0), min_size=n, max_size=n)))
     xs = [*a[[0, n // 2, n - 1]], -1.0, a[-1] + 1.0,
-          *data.draw(st.lists(floats(-2.0, 105.0), min_size=1, max_size=6))]
+          *data.draw(st.lists(st.floats(-2.0, 105.0), min_size=1, max_size=6))]
     tr = P.Track(*(None,) * 11)._replace(ref_s=jnp.asarray(a), grid_s=jnp.asarray(a))
     tr = tr.with_search_blocks()
     for x in xs:
