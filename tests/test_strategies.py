@@ -689,12 +689,18 @@ def test_traced_options_take_new_values_without_compiling(runs):
         route, VP, S.sw.checked_params(None, np.float64)).metrics
     for f in ("fuel_J", "delta_Eb_J", "trip_time_s", "mode_switches", "gear_switches"):
         assert got[f] == pytest.approx(float(getattr(want, f)), rel=1e-12, abs=1e-9), f
-    batch = S.simulate_batch(route, stack_vehicles([VP] * 2), "baseline", options=new)
-    n_items = S._item_fn.cache_info().currsize
-    batch_default = S.simulate_batch(route, stack_vehicles([VP] * 2), "baseline")
-    assert S._item_fn.cache_info().currsize == n_items  # the same program
+    # a batch as test_batch_in_chunks_equals_a_loop_of_single_runs runs (one compilation)
+    vps = stack_vehicles([VP, VP.replace(mass=18000.0, E_b_max=2e6), VP.replace(mass=32000.0)])
+    n = int(got.prediction.v.shape[0])
+    batch = S.simulate_batch(route, vps, "baseline", n_steps=n, chunk=2, options=new)
+    fn = S._item_fn("baseline", 1.0, n, S.split_options(opts)[0])
+    prog = S.shard._program(fn, 2, S.shard._resolve_devices(None), True,
+                            S.BATCH_ELEMENTAL["baseline"])
+    n_prog = prog._cache_size()
+    other = S.simulate_batch(route, vps, "baseline", n_steps=n, chunk=2, options={"kp": 3.0})
+    assert prog._cache_size() == n_prog  # the same program
     assert batch["fuel_J"][0] == pytest.approx(got["fuel_J"], rel=1e-12)
-    assert batch_default["fuel_J"][0] == pytest.approx(runs["baseline"]["fuel_J"], rel=1e-12)
+    assert other["fuel_J"][0] != batch["fuel_J"][0]
 
 
 def test_same_open_time_only_for_vehicles_whose_open_times_are_equal():
