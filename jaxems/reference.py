@@ -651,6 +651,17 @@ def ref_steps(vp: VehicleParams, P_d, v, gear, ok, lam, dt, n_grid=33, levels=12
     return _Level2Model(vp, P_d, v, gear, ok, dt, n_grid, levels).steps(lam)
 
 
+def ref_paths(vp: VehicleParams, P_d, v, gear, ok, lams, dt, E0) -> np.ndarray:
+    """E_b (J) at the step boundaries from E0 at each constant costate of `lams`: (L, T+1),
+    `ref_steps`' model built once for all of them."""
+    return _paths(_Level2Model(vp, P_d, v, gear, ok, dt), lams, E0)
+
+
+def _paths(model: _Level2Model, lams, E0) -> np.ndarray:
+    return np.array([np.concatenate([[E0], E0 + np.cumsum(model.steps(lam).dE)])
+                     for lam in np.atleast_1d(lams)])
+
+
 def ref_end(vp: VehicleParams, P_d, v, w, lam, dt, E0, mask=None):
     """E_b(t_f) (J) at a constant lambda_b: gears by `ref_gears`, then the best mode of each
     step at its gear, E_b(k+1) = E_b(k) - P_bi dt from E0."""
@@ -728,10 +739,10 @@ def ref_horizon(vp: VehicleParams, P_d, v, gear, ok, dt, E_b0, E_min, E_max, tol
     halvings of the fraction) to balance the two; the mix's largest violation is an event
     (I3a) where it exceeds tol (J), after the start. Gears given, as `ref_steps` takes
     them."""
-    model = _Level2Model(vp, P_d, v, gear, ok, dt, 33, 12)
+    model = _Level2Model(vp, P_d, v, gear, ok, dt)
 
     def path(lam):
-        return np.concatenate([[E_b0], E_b0 + np.cumsum(model.steps(lam).dE)])
+        return _paths(model, lam, E_b0)[0]
 
     def dists(E):
         return E.min() - E_min, E_max - E.max()

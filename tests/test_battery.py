@@ -23,7 +23,8 @@ from jaxems.levels import battery as b
 from jaxems.levels.powersplit import mode_gear_split
 from jaxems.params import RPM, load_vehicle, stack_vehicles
 from jaxems.reference import (_pb_of_pbi, _veh, ref_dp, ref_end, ref_fuel_power, ref_gears,
-                               ref_horizon, ref_minimal_switching, ref_steps)
+                               ref_horizon, ref_minimal_switching, ref_paths,
+                               ref_steps)
 
 VP = load_vehicle()
 W1100 = 1100 * RPM
@@ -554,12 +555,10 @@ def test_horizon_maximises_margin():
     h = b.level2_horizon(VP, P_d, v, w, None, DT_H, E0)
     assert not int(h.status) & b.I3A, b.status_names(h.status)
     gear, ok = b.select_gears(VP, P_d, v, w, np.ones(T_H, bool))
-    best = -np.inf
     gear, ok = np.asarray(gear), np.asarray(ok)
-    for lam in np.linspace(-6, -0.3, 300):  # grid search over constant costates (NumPy)
-        E = E0 + np.cumsum(ref_steps(VP, P_d, v, gear, ok, lam, DT_H).dE)
-        E = np.concatenate([[E0], E])
-        best = max(best, min(E.min(), E_max - E.max()))
+    # grid search over constant costates (NumPy)
+    E = ref_paths(VP, P_d, v, gear, ok, np.linspace(-6, -0.3, 300), DT_H, E0)
+    best = np.max(np.minimum(E.min(axis=1), E_max - E.max(axis=1)))
     assert float(h.margin) >= best - 1e-6 * E_max
     E = np.asarray(h.E_b)
     assert abs(min(E.min(), E_max - E.max()) - float(h.margin)) < 1e-6 * E_max
@@ -602,8 +601,7 @@ def test_horizon_equals_its_loop_and_its_event_ends_on_the_limit(v1, g1, g2, E0,
     assert float(h.margin) == pytest.approx(want.margin, abs=1e-6 * E_max)
     assert bool(int(h.status) & b.I3A) == want.event == (E_max < 2e6)
     # the grid: the mix of each two neighbouring costates' paths at every fraction
-    paths = np.array([np.concatenate([[E0], E0 + np.cumsum(ref_steps(
-        vp, P_d, v, gear, ok, lam, DT_H).dE)]) for lam in np.linspace(-6.0, -0.3, 80)])
+    paths = ref_paths(vp, P_d, v, gear, ok, np.linspace(-6.0, -0.3, 80), DT_H, E0)
     r = np.linspace(0.0, 1.0, 41)[:, None, None]
     mixes = paths[1:][None] + r * (paths[:-1] - paths[1:])[None]
     grid = np.max(np.minimum(mixes.min(axis=-1), E_max - mixes.max(axis=-1)))
