@@ -31,7 +31,7 @@ from hypothesis import settings, strategies  # noqa: E402
 settings.register_profile("jaxems", max_examples=40, deadline=None, derandomize=True)
 # `make test-random` (pytest --hypothesis-profile=random [--hypothesis-seed=N]): new examples
 # each run, the property tests' own numbers of them; what a fixed set never draws
-settings.register_profile("random", max_examples=40, deadline=None, derandomize=False,
+settings.register_profile("random", parent=settings.get_profile("jaxems"), derandomize=False,
                           database=None, print_blob=True)
 settings.load_profile("jaxems")
 
