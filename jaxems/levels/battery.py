@@ -519,7 +519,8 @@ def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol
     # the free path crosses E_max even at the most discharging lambda: the overshoot cannot be
     # avoided (recuperation beyond the battery), so the piece is reflected at E_max
     free = jnp.zeros((K,), bool)
-    _, S_hi, _ = _piece_paths(run(hi[pid], dt)[0], pid, bnd, E_start, free, E_max)
+    dE_cheap = run(hi[pid], dt)[0]  # the most discharging lambda: charging there is free
+    _, S_hi, _ = _piece_paths(dE_cheap, pid, bnd, E_start, free, E_max)
     sat = jax.ops.segment_max(S_hi[1:] - E_max, pid, num_segments=K) > tol_v
 
     def cond(c):  # stop once no bracket can shrink (float32: after about 28 halvings)
@@ -579,16 +580,30 @@ def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol
     dE_mix = sel * dE_lo + (1 - sel) * dE_hi
     E, _, excess = _piece_paths(dE_mix, pid, bnd, E_start, sat, E_max)
     miss = (jnp.abs(E[bnd[1:]] - tgt) > tol) & (bnd[1:] > bnd[:K])
-    # upper violations: E - E_max in free pieces; in saturated pieces the exit of an arc on
-    # E_max inside the piece (measured by the energy dumped so far), where I1 splits so that
-    # the arc ends a piece
+    # upper violations: E - E_max in free pieces. In saturated pieces an arc on E_max ends
+    # its recuperation at its last step that charges even at the most discharging lambda
+    # (free energy, dumped whatever lambda_b); where the arc stays on E_max after it, the
+    # charge it dumps there comes from the engine at this piece's lambda_b, and I1 splits at
+    # that last free step, so that the arc's recuperation ends a piece and the rest of the
+    # arc is left to the next piece's costate (measured by the engine charge dumped). An arc
+    # without free charge splits at its exit (measured by the energy dumped so far).
     j = jnp.arange(T + 1)
     p_prev = pid[jnp.clip(j - 1, 0, T - 1)]
     p_next = pid[jnp.clip(j, 0, T - 1)]
     E_next = E[jnp.clip(j + 1, 0, T)]
     on = E >= E_max - tol_v
     exit_ = (j >= 1) & (j < T) & (p_prev == p_next) & on & (E_next < E_max - tol_v)
-    over = jnp.where(sat[p_prev] & (j >= 1), jnp.where(exit_, excess, -jnp.inf), E - E_max)
+    free_in = on & (j >= 1) & (dE_cheap[jnp.clip(j - 1, 0, T - 1)] > 0)
+    arc_start = on & ((j == 0) | ~jnp.roll(on, 1) | (p_prev != jnp.roll(p_prev, 1)))
+    arc = jnp.cumsum(arc_start) - 1  # arc index of each E index on E_max (-1 before the first)
+    arc = jnp.where(on, arc, T + 1)  # off E_max: a segment of its own, never read
+    last_free = jax.ops.segment_max(jnp.where(free_in, j, -1), arc, num_segments=T + 2)[arc]
+    last_on = jax.ops.segment_max(j, arc, num_segments=T + 2)[arc]
+    engine = excess[jnp.clip(last_on, 0, T)] - excess  # dumped after j in the arc
+    at_free_end = free_in & (j == last_free)
+    over_sat = jnp.where(at_free_end, jnp.where(engine > 0, engine, -jnp.inf),
+                         jnp.where(exit_ & (last_free < 0), excess, -jnp.inf))
+    over = jnp.where(sat[p_prev] & (j >= 1), over_sat, E - E_max)
     under = E_min - E
     # I2b: in free pieces a switching sequence between B+ and B- that stays within the limits
     # makes the piece solved, even where the constant I2a mix crosses a limit
