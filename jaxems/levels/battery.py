@@ -580,29 +580,46 @@ def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol
     dE_mix = sel * dE_lo + (1 - sel) * dE_hi
     E, _, excess = _piece_paths(dE_mix, pid, bnd, E_start, sat, E_max)
     miss = (jnp.abs(E[bnd[1:]] - tgt) > tol) & (bnd[1:] > bnd[:K])
-    # upper violations: E - E_max in free pieces. In saturated pieces an arc on E_max ends
-    # its recuperation at its last step that charges even at the most discharging lambda
-    # (free energy, dumped whatever lambda_b); where the arc stays on E_max after it, the
-    # charge it dumps there comes from the engine at this piece's lambda_b, and I1 splits at
-    # that last free step, so that the arc's recuperation ends a piece and the rest of the
-    # arc is left to the next piece's costate (measured by the engine charge dumped). An arc
-    # without free charge splits at its exit (measured by the energy dumped so far).
+    # upper violations: E - E_max in free pieces. In a saturated piece an arc on E_max takes
+    # free charge (charging even at the most discharging lambda: recuperation, dumped whatever
+    # lambda_b); where the arc holds E_max without it, before, between or after free charge,
+    # the battery could have driven (refilled for free by that charge) or the engine charges
+    # it in vain. I1 splits at the end of a run of free charge, measured by the energy held
+    # back so on the arc between that run and the arc's next free charge (or its end), for the
+    # arc's first run also before it (what the most discharging lambda would draw there, and
+    # the engine's charge dumped), for its last run also the energy dumped so far: so that
+    # the free charge ends a piece, which then reaches E_max no earlier than it must, and what
+    # follows gets its own costate. An arc without free charge splits at its exit (measured by
+    # the energy dumped so far in the piece).
     j = jnp.arange(T + 1)
+    big = jnp.int32(T + 2)
     p_prev = pid[jnp.clip(j - 1, 0, T - 1)]
     p_next = pid[jnp.clip(j, 0, T - 1)]
     E_next = E[jnp.clip(j + 1, 0, T)]
     on = E >= E_max - tol_v
     exit_ = (j >= 1) & (j < T) & (p_prev == p_next) & on & (E_next < E_max - tol_v)
-    free_in = on & (j >= 1) & (dE_cheap[jnp.clip(j - 1, 0, T - 1)] > 0)
-    arc_start = on & ((j == 0) | ~jnp.roll(on, 1) | (p_prev != jnp.roll(p_prev, 1)))
-    arc = jnp.cumsum(arc_start) - 1  # arc index of each E index on E_max (-1 before the first)
-    arc = jnp.where(on, arc, T + 1)  # off E_max: a segment of its own, never read
-    last_free = jax.ops.segment_max(jnp.where(free_in, j, -1), arc, num_segments=T + 2)[arc]
-    last_on = jax.ops.segment_max(j, arc, num_segments=T + 2)[arc]
-    engine = excess[jnp.clip(last_on, 0, T)] - excess  # dumped after j in the arc
-    at_free_end = free_in & (j == last_free)
-    over_sat = jnp.where(at_free_end, jnp.where(engine > 0, engine, -jnp.inf),
-                         jnp.where(exit_ & (last_free < 0), excess, -jnp.inf))
+    free_in = on & (j >= 1) & (dE_cheap[jnp.clip(j - 1, 0, T - 1)] > 0)  # step j-1 free
+    same_next = (j < T) & jnp.roll(on, -1) & (p_next == p_prev)  # the arc goes on to j+1
+    arc_end = ~(on & same_next)  # the last E index of its arc (or one off the arcs)
+    arc = jnp.cumsum(jnp.concatenate([jnp.ones((1,), bool), arc_end[:-1]])) - 1
+    prev_same = (j >= 2) & (p_prev == jnp.roll(p_prev, 1))
+    dumped = excess - jnp.where(prev_same, jnp.roll(excess, 1), 0.0)  # in step j-1
+    kept = jnp.maximum(-dE_cheap[jnp.clip(j - 1, 0, T - 1)], 0.0) + dumped
+    D = jnp.cumsum(jnp.where(on & ~free_in & (j >= 1), kept, 0.0))  # held back, to j
+    Dx = jnp.concatenate([jnp.zeros((1,), D.dtype), D])  # Dx[k]: held back to k - 1
+    nxt = _seg_rev(jnp.where(free_in, j, big), arc_end, jnp.minimum)  # next free >= j
+    nxt = jnp.where(same_next, nxt[jnp.clip(j + 1, 0, T)], big)  # next free > j in the arc
+    after = _seg_rev(j + 1, arc_end, jnp.maximum)  # one past the arc's last E index
+    gap = Dx[jnp.minimum(nxt, after)] - D  # held back after j, to the next free or the end
+    first = jax.ops.segment_min(jnp.where(free_in, j, big), arc, num_segments=T + 1)[arc]
+    arc_first = jax.ops.segment_min(j, arc, num_segments=T + 1)[arc]
+    lead = Dx[jnp.minimum(first, T + 1)] - Dx[arc_first]  # held back before the first free
+    F = jnp.cumsum(free_in)
+    in_first = F - F[jnp.clip(first, 0, T)] == j - first  # j in the arc's first free run
+    run_end = free_in & ~(same_next & jnp.roll(free_in, -1))
+    held = gap + jnp.where(in_first, lead, 0.0) + jnp.where(nxt > T, excess, 0.0)
+    over_sat = jnp.where(run_end, jnp.where(held > 0, held, -jnp.inf),
+                         jnp.where(exit_ & (first > T), excess, -jnp.inf))
     over = jnp.where(sat[p_prev] & (j >= 1), over_sat, E - E_max)
     under = E_min - E
     # I2b: in free pieces a switching sequence between B+ and B- that stays within the limits
