@@ -809,8 +809,23 @@ def ref_fuel_power(vp: VehicleParams, P_d, w, gear, P_b):
     return out
 
 
+def _lower_envelope(x, y):
+    """The lower convex envelope of the points (x, y) (1-D arrays), evaluated at each x."""
+    order = np.lexsort((y, x))
+    hull: list[tuple[float, float]] = []
+    for p in zip(x[order].tolist(), y[order].tolist(), strict=True):
+        if hull and hull[-1][0] == p[0]:  # the lowest of equal x came first
+            continue
+        while len(hull) >= 2 and ((hull[-1][0] - hull[-2][0]) * (p[1] - hull[-2][1])
+                                  <= (hull[-1][1] - hull[-2][1]) * (p[0] - hull[-2][0])):
+            hull.pop()
+        hull.append(p)
+    hx, hy = np.array(hull).T
+    return np.minimum(y, np.interp(x, hx, hy))
+
+
 def ref_dp(vp: VehicleParams, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=301,
-           end_weight=6.0):
+           end_weight=6.0, shared=False):
     """Minimal fuel (J) by DP over an E_b grid of n_grid points with E_b(t_f) = E0.
 
     Backward recursion with the cost-to-go interpolated linearly between grid points. Controls
@@ -818,6 +833,11 @@ def ref_dp(vp: VehicleParams, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=30
     engine-only / open (P_b = 0) and motor-only (P_m = P_d) modes; the fuel of the best mode
     for each. The end condition is a penalty end_weight |E_b - E0| with end_weight above every
     costate in the bracket, so missing it never pays.
+
+    shared: a step may share its time between two of its controls (what Level 2's mix of its
+    B+ and B- trajectories does, eq. 55 and I2b), so each step's fuel over its change of E_b
+    is replaced by its lower convex envelope: a relaxation of the one-control-a-step DP, whose
+    optimum no schedule of Level 2's beats (but for the grid's error).
     """
     f = _veh(vp)
     gears = ref_gears(vp, P_d, v, w)
@@ -838,7 +858,10 @@ def ref_dp(vp: VehicleParams, P_d, v, w, dt, E0, E_min, E_max, n_grid, n_ctrl=30
             c = np.where(U == 0.0, 0.0, np.inf)
         keep = np.isfinite(c)
         U, c = U[keep], c[keep]
-        E_next = grid[:, None] - (U + beta * U * U)[None, :] * dt
+        dE = -(U + beta * U * U) * dt
+        if shared:
+            c = _lower_envelope(dE, c)
+        E_next = grid[:, None] + dE[None, :]
         inside = (E_next >= E_min - 1e-9) & (E_next <= E_max + 1e-9)
         Vn = np.interp(E_next, grid, V)
         V = np.min(np.where(inside, c[None, :] + Vn, big), axis=1)

@@ -301,12 +301,16 @@ def test_limits_solution_is_feasible_and_the_dps_on_random_hills(speeds, grades,
     NumPy fuel model (`ref_fuel_power`) at their battery powers, the path summed from the
     selector and held at E_max only in saturated pieces, within the limits, charge
     sustaining; and its fuel is no more than the fuel-optimal DP's over an E_b grid
-    (`reference.ref_dp`, one battery power a step), nor less by more than 1 %: Level 2 shares
-    a step between its two trajectories where it switches (I2b), which one power a step
-    cannot, and the grid adds its error (on a flat and a descent that fills the battery, 20 t,
-    1 MJ: Level 2 8.255 MJ, its schedule re-evaluated above; the DP 8.312 / 8.300 / 8.294 MJ
-    at 241 / 961 / 3841 points). The fixed route above was the only comparison with the DP;
-    its segment lengths are kept, so one compilation serves every example."""
+    (`reference.ref_dp`, one battery power a step; on a flat and a descent that fills the
+    battery, 20 t, 1 MJ: Level 2 8.255 MJ, its schedule re-evaluated above; the DP 8.312 /
+    8.300 / 8.294 MJ at 241 / 961 / 3841 points), nor less than the DP's relaxation that
+    shares a step between two battery powers as Level 2's mix does (`shared=True`: no
+    schedule of Level 2's beats it) but for 0.5 % and the grid's error, bounded by the
+    cost-to-go's steepest slope (the end penalty's 6) times the grid's spacing: on a route of
+    descents that burns 1.23 MJ Level 2 lies 5.2 % below the DP, 1.4 % (18 kJ) below the
+    relaxation at 241 points and 0.4 % at 961 (`experiments/level2_hills.py --seed 11`,
+    route 246). The fixed route above was the only comparison with the DP; its segment
+    lengths are kept, so one compilation serves every example."""
     dt = 3.0
     segs = [(n, s, g) for (n, _, _), s, g in zip(LIM_SEGS, speeds, grades, strict=True)]
     P_d, v = make_route(VP_SMALL, segs)
@@ -342,9 +346,11 @@ def test_limits_solution_is_feasible_and_the_dps_on_random_hills(speeds, grades,
     assert fuel == pytest.approx(float(r.fuel), rel=1e-9)
     np.testing.assert_allclose(np.asarray(r.E_b), E, rtol=0, atol=1e-3)
     assert min(E) >= -10.0 and max(E) <= E_max + 10.0 and abs(E[-1] - E0) <= 1e-3 * E_max
-    dp = ref_dp(VP_SMALL, P_d, v, w, dt, E0, 0.0, E_max, n_grid=241)
-    assert dp * (1 - 1e-2) <= float(r.fuel) <= dp * (1 + 1e-3), (float(r.fuel), dp,
-                                                                   b.status_names(status))
+    dp, relaxed = (ref_dp(VP_SMALL, P_d, v, w, dt, E0, 0.0, E_max, n_grid=241, shared=shared)
+                   for shared in (False, True))
+    fuel = float(r.fuel)
+    assert relaxed * (1 - 5e-3) - 6.0 * E_max / 240 <= fuel <= dp * (1 + 1e-3), (
+        fuel, dp, relaxed, b.status_names(status))
 
 
 @pytest.mark.parametrize("speeds, grades, soc0", [

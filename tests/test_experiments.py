@@ -330,3 +330,41 @@ def test_control_map_refuses_a_gear_out_of_range(capsys):
     control_map = _script("control_map")
     assert script_main("control_map", control_map.main, ["--gear", "0"]) == 1  # drew gear 12
     assert "--gear: a gear number from 1 to 12 (got 0)" in capsys.readouterr().err
+
+
+def test_level2_hills_rows_are_level2_and_the_dp_and_the_summary_their_arithmetic(capsys):
+    """level2_hills: each row's fuel is Level 2's (`solve_costate`) and the DP's and its
+    relaxation's (`reference.ref_dp`) on the route its speeds and grades give; the summary
+    counts what the rows say; bad input is one line naming the option."""
+    from jaxems.levels import battery as b
+    from jaxems.reference import ref_dp
+
+    lh = _script("level2_hills")
+    d, _ = main_json(lh, ["--n", "3", "--seed", "7"], capsys)
+    rows, vp = d["rows"], load_vehicle().replace(E_b_max=lh.E_MAX)
+    assert [r["route"] for r in rows] == [0, 1, 2]
+    for r in rows:
+        assert all(12.0 <= x <= 22.0 for x in r["speeds_mps"]) and 0.2 <= r["soc0"] <= 0.8
+        P_d, v = lh.hill(vp, r["speeds_mps"], r["grades"])
+        assert v.shape == (120,)
+        w, E0 = np.full(v.shape, 1100 * 2 * np.pi / 60), r["soc0"] * lh.E_MAX
+        c = b.solve_costate(vp, P_d, v, w, None, lh.DT, E_b0=E0)
+        assert r["level2_J"] == pytest.approx(float(c.fuel), rel=1e-12)
+        assert r["status"] == b.status_names(int(c.status))
+        if "dp_J" in r:
+            for key, shared in (("dp_J", False), ("relaxed_dp_J", True)):
+                want = ref_dp(vp, P_d, v, w, lh.DT, E0, 0.0, lh.E_MAX, n_grid=241,
+                              shared=shared)
+                assert r[key] == pytest.approx(want, rel=1e-12)
+            assert r["relaxed_dp_J"] <= r["dp_J"]
+            assert r["excess_pct"] == pytest.approx(100 * (r["level2_J"] / r["dp_J"] - 1))
+    solved = [r for r in rows if "dp_J" in r]
+    s = d["summary"]
+    assert s["solved"] == len(solved) > 0 and s["routes"] == 3
+    assert s["above_dp_0.1pct"] == sum(r["excess_pct"] > 0.1 for r in solved)
+    assert s["max_excess_pct"] == max(r["excess_pct"] for r in solved)
+    assert s["min_over_relaxed_pct"] == min(r["over_relaxed_pct"] for r in solved)
+    assert "random hills (seed 7)" in lh.format_table(d)
+    with pytest.raises(SystemExit):
+        lh.main(["--n", "0"])
+    assert "--n: expected a whole number >= 1" in capsys.readouterr().err

@@ -121,3 +121,20 @@ def test_viterbi_path_is_optimal(seed, n_steps, n_states):
     assert r.cost == best
     if np.isfinite(best):
         assert cost(r.start, r.path) == best
+
+
+@settings(max_examples=30, deadline=None)
+@given(pts=st.lists(st.tuples(st.integers(-20, 20), st.integers(-50, 50)), min_size=1,
+                    max_size=12))
+def test_lower_envelope_is_the_lowest_chord_through_each_point(pts):
+    """`reference._lower_envelope` (the relaxed DP's step cost, `ref_dp(shared=True)`) against
+    brute force: at each x the lowest value of any chord between two points around it (or of
+    a point there)."""
+    x, y = (np.array(a, float) for a in zip(*pts, strict=True))
+    got = ref._lower_envelope(x, y)
+    for i, xi in enumerate(x):
+        want = y[x == xi].min()
+        for j, k in itertools.product(range(len(x)), repeat=2):
+            if x[j] < xi < x[k]:
+                want = min(want, y[j] + (y[k] - y[j]) * (xi - x[j]) / (x[k] - x[j]))
+        assert got[i] == pytest.approx(want, abs=1e-9)
