@@ -364,7 +364,7 @@ def test_level2_hills_rows_are_level2_and_the_dp_and_the_summary_their_arithmeti
     assert s["above_dp_0.1pct"] == sum(r["excess_pct"] > 0.1 for r in solved)
     assert s["max_excess_pct"] == max(r["excess_pct"] for r in solved)
     assert s["min_over_relaxed_pct"] == min(r["over_relaxed_pct"] for r in solved)
-    assert "random hills (seed 7)" in lh.format_table(d)
+    assert "random hills (seed 7, 1 MJ)" in lh.format_table(d)
     with pytest.raises(SystemExit):
         lh.main(["--n", "0"])
     assert "--n: expected a whole number >= 1" in capsys.readouterr().err
