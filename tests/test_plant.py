@@ -16,7 +16,7 @@ from jaxems import reference as R
 from jaxems import strategies as S
 from jaxems import xla
 from jaxems.levels import powersplit as ps
-from jaxems.levels.velocity import predict_velocity
+from jaxems.levels.velocity import V_CRAWL, predict_velocity
 from jaxems.params import load_vehicle, vehicle_axes
 from jaxems.route import Row, route_from_rows
 
@@ -670,9 +670,10 @@ def wild_commands(rng, mode, gear, every=0.125):
     return mode, gear, lam, P_b, up, rng.random(N_PLANT) < 0.75
 
 
-def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
+def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps, v_atol=5e-5):
     """The plant's track equals `reference.ref_track`'s, and its run under the script `cmds`
-    equals `reference.ref_plant`'s, step by step and in its totals; returns the run."""
+    equals `reference.ref_plant`'s, step by step and in its totals; returns the run. v_atol:
+    how far the speeds may part (m/s), what follows from it is derived below."""
     track = P.make_track(route, pred)
     res = run_script(vp, tuple(jnp.asarray(a) for a in cmds), track)
     ref_track = R.ref_track(route, pred)
@@ -680,7 +681,8 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
                  "final_s"):
         np.testing.assert_allclose(np.asarray(getattr(track, name)), getattr(ref_track, name),
                                    rtol=1e-12, atol=1e-9, err_msg=name)
-    steps, tot, final = R.ref_plant(vp, ref_track, cmds, N_PLANT, 1.0, ps.MO, 0)
+    dt = 1.0
+    steps, tot, final = R.ref_plant(vp, ref_track, cmds, N_PLANT, dt, ps.MO, 0)
     tr = res.trace
     n = int(np.sum(np.asarray(tr.t) < float(res.final.tot.trip_time))) if res.final.done \
         else N_PLANT
@@ -688,28 +690,58 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps):
     for name in ("mode", "gear"):
         np.testing.assert_array_equal(np.asarray(getattr(tr, name))[:n],
                                       [getattr(x, name) for x in steps[:n]], err_msg=name)
+    got = {name: np.asarray(getattr(tr, name))[:n] for name in (
+        "s", "v", "v_ref", "E_b", "P_d", "P_e", "P_m", "P_b", "P_f", "P_brake")}
+    want = {name: np.array([getattr(x, name) for x in steps[:n]]) for name in got}
     # the loop's optimal split is a search on H, which is flat to rounding within about 0.01 W
     # of its minimum (its curvature is the battery's -lambda_b beta), but to about 0.15 W in a
-    # crawl up 30 % at 27.5 t (P_m 0.14 W apart, P_d 0.18 W on 197 kW): powers to 0.5 W or
-    # 1e-6 of them, the battery's energy, which sums them, to 5 J, speeds short of their
-    # target (which the powers set: 0.5 W over m v) to 5e-5 m/s (1.6e-6 seen), positions to
-    # 1e-4 m
-    for name, atol in (("s", 1e-4), ("v", 5e-5), ("E_b", 5.0), ("P_d", 0.5), ("P_e", 0.5),
-                       ("P_m", 0.5), ("P_b", 0.5), ("P_f", 0.5), ("P_brake", 0.5),
-                       ("v_ref", 1e-6)):
-        rtol = 1e-6 if name.startswith("P_") else 1e-8
-        np.testing.assert_allclose(np.asarray(getattr(tr, name))[:n],
-                                   [getattr(x, name) for x in steps[:n]], rtol=rtol, atol=atol,
-                                   err_msg=name)
+    # crawl up 30 % at 27.5 t (P_m 0.14 W apart, P_d 0.18 W on 197 kW): speeds short of their
+    # target (which the powers set: 0.5 W over m v) to v_atol (5e-5 m/s; 1.6e-6 seen). What
+    # depends on the speed parts with it: positions by dt times the speeds' gaps summed,
+    # beyond 1e-4 m; each step's powers beyond 0.5 W or 1e-6 of them by up to 3 m v_max / dt
+    # per m/s of its speeds' gap at its start or end (the demand m v dv/dt) and 3 m g / dt
+    # times the largest change of gradient per m of its positions' gap (a step across a crest
+    # climbs that much more or less: 11.8 W for 1.6e-4 m at the top of 30 %), the 3 for the
+    # fuel, 2-3 times the engine's power; the reference speed, the track's at the truck's
+    # position, by the track's steepest dv/ds times the positions' gap (on the last metres to
+    # a stop, 1 m/s a step: 1e-6 m/s for 3e-7 m); the battery's energy, which sums the
+    # powers, to 5 J and the powers' slack summed
+    np.testing.assert_allclose(got["v"], want["v"], rtol=1e-8, atol=v_atol, err_msg="v")
+    dv = np.abs(got["v"] - want["v"])
+    dv_step = np.maximum(dv, np.append(dv[1:], 0.0))  # at the step's start or end
+    s_gap = np.abs(got["s"] - want["s"])
+    assert np.all(s_gap <= 1e-4 + 1e-8 * want["s"] + dt * np.cumsum(dv_step)), "s"
+    m = float(vp.mass)
+    jump = float(np.max(np.abs(np.diff(ref_track.grade))))  # the largest change of gradient
+    p_slack = (3.0 * m * max(float(np.max(want["v"])), 1.0) * dv_step  # the speeds' gap
+               + 3.0 * m * 9.81 * jump * np.maximum(s_gap, np.append(s_gap[1:], 0.0))) / dt
+    for name in ("P_d", "P_e", "P_m", "P_b", "P_f", "P_brake"):
+        gap = np.abs(got[name] - want[name])
+        assert np.all(gap <= 0.5 + 1e-6 * np.abs(want[name]) + p_slack), (
+            name, int(np.argmax(gap - p_slack)), float(np.max(gap - p_slack)))
+    ds, dvr = np.diff(ref_track.ref_s), np.abs(np.diff(ref_track.ref_v))
+    slope = float(np.max(np.where(ds > 1e-6, dvr / np.maximum(ds, 1e-6), 0.0)))
+    assert np.all(np.abs(got["v_ref"] - want["v_ref"])
+                  <= 1e-6 + 1e-8 * want["v_ref"] + slope * s_gap), "v_ref"
+    e_slack = dt * np.cumsum(p_slack)  # what the powers' slack sums to, to each step
+    assert np.all(np.abs(got["E_b"] - want["E_b"]) <= 5.0 + 1e-8 * want["E_b"] + e_slack), "E_b"
+    # the totals part by what the steps' checks allow where the speeds part: the energies by
+    # the powers' slack summed, the largest shortfall by the speeds' and reference speeds'
+    # gaps, the trip time by the positions' gap over V_CRAWL / 2 (the trip's last step comes
+    # to rest from V_CRAWL at the latest)
     t = res.final.tot
+    e_slack = float(e_slack[-1])
     for name in ("fuel", "road", "loss_engine", "loss_slip", "loss_motor", "loss_battery",
                  "loss_brake", "loss_sync"):  # J
-        assert float(getattr(t, name)) == pytest.approx(tot[name], rel=1e-8, abs=5.0), name
-    assert float(t.max_shortfall) == pytest.approx(tot["max_shortfall"], abs=1e-6)
+        assert float(getattr(t, name)) == pytest.approx(tot[name], rel=1e-8,
+                                                        abs=5.0 + e_slack), name
+    assert float(t.max_shortfall) == pytest.approx(
+        tot["max_shortfall"], abs=1e-6 + float(np.max(dv + slope * s_gap)))
     for name in ("mode_switches", "gear_switches"):
         assert float(getattr(t, name)) == tot[name], name
-    assert float(t.trip_time) == pytest.approx(tot["trip_time"], rel=1e-9, abs=1e-6)
-    assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0)
+    assert float(t.trip_time) == pytest.approx(
+        tot["trip_time"], rel=1e-9, abs=1e-6 + float(np.max(s_gap)) / (0.5 * V_CRAWL))
+    assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0 + e_slack)
     assert_trace_closes(vp, res)
     return res
 
@@ -746,6 +778,7 @@ def test_plant_equals_its_loop(seed, mass, battery, hybrid):
 
 @settings(max_examples=6, deadline=None)
 @example(seed=0, mass=36e3, battery=0.2e6, hybrid=False)  # the heaviest, without the motor
+@example(seed=0, mass=28048.0, battery=1216442.0, hybrid=True)  # v_ref parts at a stop
 @given(seed=st.integers(0, 2**31 - 1), mass=st.floats(15e3, 36e3),
        battery=st.floats(0.2e6, 4e6), hybrid=st.booleans())
 def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, hybrid):
@@ -762,7 +795,12 @@ def test_a_gear_it_cannot_shift_out_of_holds_its_top_speed(seed, mass, battery, 
     drive = ps.MC if hybrid else ps.ME
     ask = np.minimum(np.arange(N_PLANT) // 8, VP.gear_ratio.shape[0] - 1)
     cmds = wild_commands(rng, np.full(N_PLANT, drive), ask)
-    res = assert_plant_equals_its_loop(vp, cmds, STEEP, PRED_STEEP, 40)
+    # where the battery empties on the climb (2 MJ of motor power take it up), the engine
+    # alone falls short of the top speed, and the speed it loses costs it power at the lower
+    # engine speed: a gap of rounding (9 mJ of E_b as it empties) grows 2-3 times a step
+    # (7e-8 m/s to 1.2e-5 m/s in 7 steps) until a step at the held top speed closes it; 2.1e-4
+    # m/s at most in 120 random hybrid draws (4 beyond 5e-5)
+    res = assert_plant_equals_its_loop(vp, cmds, STEEP, PRED_STEEP, 40, v_atol=5e-4)
     tr = res.trace
     s, v, gear = (np.asarray(x) for x in (tr.s, tr.v, tr.gear))
     climb = (s > 5.0) & (s < 140.0)  # the launch is behind, the crest ahead
