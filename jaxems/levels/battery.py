@@ -607,9 +607,10 @@ def _solve_pieces(vp, tab, ok, dt, bnd, E_bnd, E_min, E_max, lam_lo, lam_hi, tol
     kept = jnp.maximum(-dE_cheap[jnp.clip(j - 1, 0, T - 1)], 0.0) + dumped
     D = jnp.cumsum(jnp.where(on & ~free_in & (j >= 1), kept, 0.0))  # held back, to j
     Dx = jnp.concatenate([jnp.zeros((1,), D.dtype), D])  # Dx[k]: held back to k - 1
-    nxt = _seg_rev(jnp.where(free_in, j, big), arc_end, jnp.minimum)  # next free >= j
-    nxt = jnp.where(same_next, nxt[jnp.clip(j + 1, 0, T)], big)  # next free > j in the arc
-    after = _seg_rev(j + 1, arc_end, jnp.maximum)  # one past the arc's last E index
+    after = jax.ops.segment_max(j, arc, num_segments=T + 1)[arc] + 1  # past the arc's last
+    nxt = jax.lax.cummin(jnp.where(free_in, j, big), reverse=True)  # the next free >= j
+    nxt = jnp.where(same_next, nxt[jnp.clip(j + 1, 0, T)], big)  # ... > j
+    nxt = jnp.where(nxt < after, nxt, big)  # ... in the arc
     gap = Dx[jnp.minimum(nxt, after)] - D  # held back after j, to the next free or the end
     first = jax.ops.segment_min(jnp.where(free_in, j, big), arc, num_segments=T + 1)[arc]
     arc_first = jax.ops.segment_min(j, arc, num_segments=T + 1)[arc]
