@@ -725,23 +725,23 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps, v_atol=5e-5):
                   <= 1e-6 + 1e-8 * want["v_ref"] + slope * s_gap), "v_ref"
     e_slack = dt * np.cumsum(p_slack)  # what the powers' slack sums to, to each step
     assert np.all(np.abs(got["E_b"] - want["E_b"]) <= 5.0 + 1e-8 * want["E_b"] + e_slack), "E_b"
+    e_total = float(e_slack[-1])
     # the totals part by what the steps' checks allow where the speeds part: the energies by
     # the powers' slack summed, the largest shortfall by the speeds' and reference speeds'
     # gaps, the trip time by the positions' gap over V_CRAWL / 2 (the trip's last step comes
     # to rest from V_CRAWL at the latest)
     t = res.final.tot
-    e_slack = float(e_slack[-1])
     for name in ("fuel", "road", "loss_engine", "loss_slip", "loss_motor", "loss_battery",
                  "loss_brake", "loss_sync"):  # J
         assert float(getattr(t, name)) == pytest.approx(tot[name], rel=1e-8,
-                                                        abs=5.0 + e_slack), name
+                                                        abs=5.0 + e_total), name
     assert float(t.max_shortfall) == pytest.approx(
         tot["max_shortfall"], abs=1e-6 + float(np.max(dv + slope * s_gap)))
     for name in ("mode_switches", "gear_switches"):
         assert float(getattr(t, name)) == tot[name], name
     assert float(t.trip_time) == pytest.approx(
         tot["trip_time"], rel=1e-9, abs=1e-6 + float(np.max(s_gap)) / (0.5 * V_CRAWL))
-    assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0 + e_slack)
+    assert float(res.final.E_b) == pytest.approx(final["E_b"], rel=1e-9, abs=5.0 + e_total)
     assert_trace_closes(vp, res)
     return res
 
