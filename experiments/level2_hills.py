@@ -39,6 +39,7 @@ from jaxems.reference import ref_dp  # noqa: E402
 STEPS = (20, 27, 20, 27, 26)
 DT = 3.0
 E_MAX = 1.0e6
+W_LEVEL2 = 1100 * RPM  # the engine speed Level 2 assumes (rad/s)
 
 
 def hill(vp, speeds, grades):
@@ -57,7 +58,7 @@ def run(n: int, seed: int, E_max: float = E_MAX, log=sys.stderr) -> dict:
         grades = rng.uniform(-0.045, 0.045, 5)
         soc0 = rng.uniform(0.2, 0.8)
         P_d, v = hill(vp, speeds, grades)
-        w = np.full(v.shape, 1100 * RPM)
+        w = np.full(v.shape, W_LEVEL2)
         r = b.solve_costate(vp, P_d, v, w, None, DT, E_b0=soc0 * E_max)
         status = int(r.status)
         row = {"route": i, "speeds_mps": speeds.tolist(), "grades": grades.tolist(),

@@ -347,7 +347,7 @@ def test_level2_hills_rows_are_level2_and_the_dp_and_the_summary_their_arithmeti
         assert all(12.0 <= x <= 22.0 for x in r["speeds_mps"]) and 0.2 <= r["soc0"] <= 0.8
         P_d, v = lh.hill(vp, r["speeds_mps"], r["grades"])
         assert v.shape == (120,)
-        w, E0 = np.full(v.shape, 1100 * 2 * np.pi / 60), r["soc0"] * lh.E_MAX
+        w, E0 = np.full(v.shape, lh.W_LEVEL2), r["soc0"] * lh.E_MAX
         c = b.solve_costate(vp, P_d, v, w, None, lh.DT, E_b0=E0)
         assert r["level2_J"] == pytest.approx(float(c.fuel), rel=1e-12)
         assert r["status"] == b.status_names(int(c.status))

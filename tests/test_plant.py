@@ -714,7 +714,7 @@ def assert_plant_equals_its_loop(vp, cmds, route, pred, min_steps, v_atol=5e-5):
     m = float(vp.mass)
     jump = float(np.max(np.abs(np.diff(ref_track.grade))))  # the largest change of gradient
     p_slack = (3.0 * m * max(float(np.max(want["v"])), 1.0) * dv_step  # the speeds' gap
-               + 3.0 * m * 9.81 * jump * np.maximum(s_gap, np.append(s_gap[1:], 0.0))) / dt
+               + 3.0 * m * float(vp.g) * jump * np.maximum(s_gap, np.append(s_gap[1:], 0.0))) / dt
     for name in ("P_d", "P_e", "P_m", "P_b", "P_f", "P_brake"):
         gap = np.abs(got[name] - want[name])
         assert np.all(gap <= 0.5 + 1e-6 * np.abs(want[name]) + p_slack), (
