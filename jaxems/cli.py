@@ -117,6 +117,33 @@ def check_output(path: str | None, flag: str, directory: bool = False) -> Path |
     return p
 
 
+def check_not_inputs(outputs: list[tuple[str, Path | None]], route=None, vehicle=None) -> None:
+    """Outputs ((flag, path) pairs) that are none of the files a command reads (its route file,
+    its vehicle file), checked before anything runs: `predict r.csv --csv r.csv` wrote its
+    time series over the route it had read. Else CLIError naming the flag and both files."""
+    from .io import resolve_route
+    from .params import vehicle_file
+
+    inputs = [(what, p) for what, p in (
+        ("the route file", None if route is None else resolve_route(route)),
+        ("the vehicle file", None if vehicle is None else vehicle_file(vehicle)))
+        if p is not None]
+    for flag, out in outputs:
+        for what, src in inputs:
+            if out is not None and same_file(out, src):
+                raise CLIError(f"{flag}: {out} is {what} being read ({src}); an output may not "
+                               f"overwrite an input: name another file")
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """Whether `a` and `b` are one existing file (links and other spellings of the path
+    included); False where either does not exist."""
+    try:
+        return os.path.samefile(a, b)
+    except (OSError, ValueError):
+        return False
+
+
 def nearest_existing(path: Path) -> Path:
     """`path` or its nearest ancestor that exists (what stands where a file or directory is to
     be made: a directory, or a file in the way); the root where none does."""
@@ -260,6 +287,7 @@ def cmd_predict(args) -> int:
 
     dt = check_dt(args.dt)
     csv = check_output(args.csv, "--csv")
+    check_not_inputs([("--csv", csv)], args.route, args.vehicle)
     _setup_jax()
     name, path, route = _load(args)
     vp = _load_vehicle(args)
@@ -358,6 +386,7 @@ def cmd_simulate(args) -> int:
         raise CLIError(f"--plot: the plot is a PNG: its file name ends in .png (got {args.plot})")
     if csv is not None and plot is not None and csv.resolve() == plot.resolve():
         raise CLIError(f"--csv and --plot: the same file {args.csv} (each needs its own)")
+    check_not_inputs([("--csv", csv), ("--plot", plot)], args.route, args.vehicle)
     _setup_jax()
     vp = _load_vehicle(args)  # mass and battery validated here
     path = resolve_route(args.route)
@@ -475,6 +504,9 @@ def cmd_compare(args) -> int:
 
     strategies = [check_strategy(s) for s in comma_list(args.strategies)]
     traces = check_output(args.traces, "--traces", directory=True)  # before any run
+    if traces is not None:  # the files it writes there
+        check_not_inputs([("--traces", traces / f"{s}{ext}") for s in strategies
+                          for ext in (".csv", ".png")], args.route, args.vehicle)
     _setup_jax()
     vp = _load_vehicle(args)
     path = resolve_route(args.route)

@@ -287,16 +287,23 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
 
     Raises `VehicleError` (a `ValueError`) naming the file and the field on any bad value.
     """
+    p = vehicle_file(name_or_path)
+    if not p.is_file():
+        known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
+        raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
+    return params_from_dict(read_toml(p, VehicleError)[1], str(p))
+
+
+def vehicle_file(name_or_path: str | os.PathLike) -> Path:
+    """The file `load_vehicle` reads for a path or a bundled vehicle's name (which need not
+    exist): a path as it is, a bare name (no suffix, no such file) in `data/vehicles/`."""
     if not isinstance(name_or_path, str | os.PathLike):
         raise VehicleError(f"vehicle: expected a VehicleParams, a vehicle file's path or a "
                            f"bundled vehicle's name (got {type(name_or_path).__name__})")
     p = Path(name_or_path)
     if not p.suffix and not p.exists():
         p = VEHICLE_DIR / f"{name_or_path}.toml"
-    if not p.is_file():
-        known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
-        raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
-    return params_from_dict(read_toml(p, VehicleError)[1], str(p))
+    return p
 
 
 def read_toml(path: Path, error: type = ValueError) -> tuple[str, dict]:

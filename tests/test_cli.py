@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from jaxems.cli import build_parser, main
+from jaxems.cli import CLIError, build_parser, check_not_inputs, main
 from jaxems.params import load_vehicle
 from jaxems.reference import road_load
 
@@ -138,6 +138,34 @@ def test_output_paths_name_the_flag(tmp_path):
             check_output(str(path), flag, directory)
         assert str(e.value).startswith(words), e.value
     assert check_output(str(tmp_path / "x.csv"), "--csv") == tmp_path / "x.csv"
+
+
+def test_an_output_never_overwrites_an_input(capsys, tmp_path, monkeypatch):
+    """`predict r.csv --csv r.csv` (and --csv naming the vehicle file) wrote the time series
+    over the file it had read and exited 0; refused before anything runs, naming both."""
+    from jaxems.levels import velocity
+
+    monkeypatch.setattr(velocity, "predict_velocity", lambda *a, **k: pytest.fail("ran"))
+    route = tmp_path / "r.csv"
+    route.write_text("distance_m,speed_limit_km_h\n0,50\n500,50\n")
+    vehicle = tmp_path / "v.toml"
+    vehicle.write_text((ROOT / "data/vehicles/reference_truck.toml").read_text())
+    (tmp_path / "link.csv").symlink_to(route)
+    before = {p.name: p.read_bytes() for p in (route, vehicle)}
+    for csv, what, src in [(route, "route", route), (tmp_path / "link.csv", "route", route),
+                           (tmp_path / "sub" / ".." / "r.csv", "route", route),
+                           (vehicle, "vehicle", vehicle)]:
+        (tmp_path / "sub").mkdir(exist_ok=True)
+        code, out, err = run(capsys, "predict", str(route), "--vehicle", str(vehicle),
+                             "--csv", str(csv))
+        assert code == 1 and out == "" and err.count("\n") == 1
+        assert f"--csv: {csv} is the {what} file being read ({src})" in err
+    assert {p.name: p.read_bytes() for p in (route, vehicle)} == before
+    # the bundled vehicle, by name
+    bundled = ROOT / "data/vehicles/reference_truck.toml"
+    with pytest.raises(CLIError, match="is the vehicle file being read"):
+        check_not_inputs([("--csv", bundled)], str(route), "reference_truck")
+    check_not_inputs([("--csv", tmp_path / "new.csv"), ("--plot", None)], str(route), "x")
 
 
 def test_scripts_end_bad_input_in_one_line(capsys):

@@ -152,6 +152,25 @@ def test_simulate_checks_its_output_files_before_running(capsys, tmp_path, monke
     assert list(tmp_path.iterdir()) == []
 
 
+def test_simulate_and_compare_never_write_over_their_input(capsys, tmp_path, monkeypatch):
+    """`simulate r.csv --csv r.csv` overwrote the route it had read with its time series;
+    `compare DIR/conventional.csv --traces DIR` would have; refused before anything runs."""
+    from jaxems import strategies
+
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: pytest.fail("ran before the check"))
+    route = tmp_path / "conventional.csv"
+    route.write_text("distance_m,speed_limit_km_h\n0,50\n500,50\n")
+    for argv in (["simulate", str(route), "--strategy", "conventional", "--csv", str(route)],
+                 ["compare", str(route), "--strategies", "conventional",
+                  "--traces", str(tmp_path)]):
+        code, out, err = run(capsys, *argv)
+        assert code == 1 and out == "" and err.count("\n") == 1
+        flag = argv[-2]
+        assert f"{flag}: {route} is the route file being read ({route})" in err
+    assert route.read_text() == "distance_m,speed_limit_km_h\n0,50\n500,50\n"
+    assert [p.name for p in tmp_path.iterdir()] == ["conventional.csv"]
+
+
 def test_simulate_registered():
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert {"route", "predict", "simulate"} <= set(sub.choices)
