@@ -812,7 +812,9 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     """Create the results directory or check that it holds this very sweep.
 
     Raises `SweepError` if it holds a different sweep (naming what changed), holds results of
-    something that is not a jaxems sweep, or (``resume``) has nothing to resume. The record
+    something that is not a jaxems sweep, is not empty and no sweep's (`_own_entry`: a
+    folder of the user's, whose report.html a sweep wrote over), or (``resume``) has nothing
+    to resume. The record
     is written before ``chunks/`` is made, so a run killed in between leaves a directory that
     a rerun continues; an empty ``chunks/`` without a record (such a run of an earlier jaxems)
     holds nothing to mix up and is taken as fresh.
@@ -833,6 +835,13 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
     if finished_chunks(out) or (out / RESULTS_FILE).exists():
         raise SweepError(f"{out}: holds sweep results without {CONFIG_FILE}; refusing to mix "
                          f"them; use another --out directory")
+    foreign = sorted(p.name for p in out.iterdir() if not _own_entry(cfg, p)) \
+        if out.is_dir() else []
+    if foreign:  # a folder of the user's own: its report.html was overwritten
+        listed = ", ".join(foreign[:3]) + (", ..." if len(foreign) > 3 else "")
+        raise SweepError(f"--out: {out} is not empty and holds no jaxems sweep (no "
+                         f"{CONFIG_FILE}; it has {listed}); refusing to write into it: use a "
+                         f"new or empty directory")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as e:  # past `check_out_dir` (root writes where no directory can be made)
@@ -843,6 +852,19 @@ def prepare_dir(cfg: SweepConfig, out: Path, resume: bool = False) -> None:
             "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     atomic_write_bytes(meta_path, (json.dumps(meta, indent=1) + "\n").encode("utf-8"))
     (out / CHUNK_DIR).mkdir(exist_ok=True)
+
+
+def _own_entry(cfg: SweepConfig, p: Path) -> bool:
+    """Whether `p`, in a results directory without a record, is what a run of this sweep
+    killed before it wrote the record leaves there: its copy of the sweep file (the same
+    text), chunks/ (no finished chunk: `prepare_dir` checks), the lock, a temporary file."""
+    if p.name == SOURCE_COPY:
+        try:
+            return p.is_file() and p.read_bytes() == cfg.text.encode("utf-8")
+        except OSError:
+            return False
+    return ((p.name == CHUNK_DIR and p.is_dir()) or p.name == ".lock"
+            or (p.name.startswith(".") and ".tmp-" in p.name))
 
 
 @contextlib.contextmanager
@@ -1221,6 +1243,8 @@ def run_sweep(
     each chunk file is written (tests).
     """
     check_executor(workers, scheduler)
+    if out is not None and not str(out).strip():  # Path("") is the current directory
+        raise SweepError(f"--out: expected a directory name (got {str(out)!r})")
     cfg = load_config(sweep_file)
     out = Path(out) if out is not None else default_out(sweep_file)
     check_out_dir(out)

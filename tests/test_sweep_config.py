@@ -316,6 +316,43 @@ def test_a_run_killed_while_it_makes_its_directory_runs_again(tmp_path, monkeypa
         sw.prepare_dir(cfg, other)
 
 
+def test_a_folder_that_is_no_sweeps_is_not_written_into(tmp_path, capsys, monkeypatch):
+    """--out naming a folder of the user's (not empty, no sweep.json) wrote its report.html
+    over the user's and added its files; --out '' wrote into the current directory."""
+    monkeypatch.setattr(sw, "_in_process_devices", lambda n: None)  # this process's devices
+    cfg = sw.load_config(write(tmp_path, GOOD))
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "report.html").write_text("mine")
+    (foreign / "notes").mkdir()
+    for extra in ([], [sw.SOURCE_COPY]):  # a sweep.toml of other text is the user's too
+        if extra:
+            (foreign / "report.html").unlink()
+            (foreign / "notes").rmdir()
+            (foreign / sw.SOURCE_COPY).write_text("# another sweep\n" + GOOD)
+        before = {p.name: p.read_bytes() if p.is_file() else None for p in foreign.iterdir()}
+        with pytest.raises(sw.SweepError) as e:
+            sw.prepare_dir(cfg, foreign)
+        assert str(e.value).startswith(f"--out: {foreign} is not empty and holds no jaxems "
+                                       f"sweep (no sweep.json; it has "
+                                       f"{', '.join(sorted(before))})")
+        assert {p.name: p.read_bytes() if p.is_file() else None
+                for p in foreign.iterdir()} == before
+    p = write(tmp_path, GOOD)
+    for out, words in ((str(foreign), f"--out: {foreign} is not empty"),
+                       ("", "--out: expected a directory name (got '')")):
+        assert sw.main([str(p), "--out", out, "--quiet"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"jaxems: error: {words}") and err.count("\n") == 1
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["foreign", "s.toml"]
+    # an empty folder, and one a killed run of this sweep left (its sweep.toml): fresh
+    (tmp_path / "empty").mkdir()
+    sw.prepare_dir(cfg, tmp_path / "empty")
+    (foreign / sw.SOURCE_COPY).write_text(cfg.text)
+    sw.prepare_dir(cfg, foreign)
+    assert (foreign / sw.CONFIG_FILE).exists() and (tmp_path / "empty" / sw.CONFIG_FILE).exists()
+
+
 def test_results_of_other_code_are_refused_and_the_demo_starts_over(tmp_path, monkeypatch,
                                                                       capsys):
     cfg = sw.load_config(write(tmp_path, GOOD))
