@@ -1157,6 +1157,7 @@ def _progress(total: int, initial: int, quiet: bool):
 
 
 CACHE_ENV = "JAX_COMPILATION_CACHE_DIR"
+SCHEDULER_TIMEOUT_S = 30  # how long --scheduler's address is tried before the sweep gives up
 
 
 def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None = None):
@@ -1172,7 +1173,7 @@ def _executor(workers: int | None, scheduler: str | None, cache_dir: Path | None
 
     if scheduler is not None:
         try:
-            return Client(scheduler, timeout=30), None
+            return Client(scheduler, timeout=SCHEDULER_TIMEOUT_S), None
         except (OSError, TimeoutError) as e:
             raise SweepError(f"cannot reach the Dask scheduler at {scheduler}: {e}") from None
     env = {}
@@ -1237,7 +1238,8 @@ def run_sweep(
 
     sweep_file: the TOML file (validated completely before any computation); out: results
     directory (default `default_out`); workers: start a local Dask cluster of this many
-    processes; scheduler: address of a running Dask scheduler; client: an existing
+    processes; scheduler: address of a running Dask scheduler (reached before anything is
+    written: `SweepError` where it cannot be); client: an existing
     `dask.distributed.Client` to use instead; resume: require an existing directory of this
     sweep; quiet: no progress bar; report: write the report at the end; on_chunk: called after
     each chunk file is written (tests).
@@ -1248,10 +1250,19 @@ def run_sweep(
     cfg = load_config(sweep_file)
     out = Path(out) if out is not None else default_out(sweep_file)
     check_out_dir(out)
-    prepare_dir(cfg, out, resume=resume)
-    with dir_lock(out):
-        return _run_locked(cfg, out, workers=workers, scheduler=scheduler, quiet=quiet,
-                           report=report, client=client, on_chunk=on_chunk)
+    own_client = None
+    if client is None and scheduler is not None:
+        # reached before the directory is made: a scheduler that could not be reached left
+        # a skeleton of one (sweep.toml, sweep.json, .lock, chunks/)
+        own_client, _ = _executor(None, scheduler)
+    try:
+        prepare_dir(cfg, out, resume=resume)
+        with dir_lock(out):
+            return _run_locked(cfg, out, workers=workers, scheduler=scheduler, quiet=quiet,
+                               report=report, client=client or own_client, on_chunk=on_chunk)
+    finally:
+        if own_client is not None:
+            own_client.close()
 
 
 def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, report, client,

@@ -224,6 +224,25 @@ def test_bad_flags_stop_before_the_directory_is_made(tmp_path, capsys, monkeypat
     assert sorted(x.name for x in tmp_path.iterdir()) == ["afile", "s.toml"]
 
 
+def test_an_unreachable_scheduler_leaves_no_directory(tmp_path, monkeypatch):
+    """--scheduler naming no scheduler failed after its timeout (as it should) but left a
+    skeleton results directory (sweep.toml, sweep.json, .lock, chunks/): the scheduler is
+    reached first; a sweep's existing directory is left as it was."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(sw, "SCHEDULER_TIMEOUT_S", 1)
+    p = write(tmp_path, GOOD)
+    with pytest.raises(sw.SweepError, match="cannot reach the Dask scheduler at "
+                                            "tcp://127.0.0.1:1"):
+        sw.run_sweep(p, tmp_path / "out", scheduler="tcp://127.0.0.1:1", quiet=True)
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["s.toml"]
+    out = tmp_path / "done"
+    sw.prepare_dir(sw.load_config(p), out)
+    before = sorted(x.name for x in out.rglob("*"))
+    with pytest.raises(sw.SweepError, match="cannot reach the Dask scheduler"):
+        sw.run_sweep(p, out, scheduler="tcp://127.0.0.1:1", quiet=True, resume=True)
+    assert sorted(x.name for x in out.rglob("*")) == before
+
+
 def test_globs_relative_paths_and_ranges(tmp_path):
     d = tmp_path / "routes"
     d.mkdir()
