@@ -288,6 +288,8 @@ def load_vehicle(name_or_path: str | Path = "reference_truck") -> VehicleParams:
     Raises `VehicleError` (a `ValueError`) naming the file and the field on any bad value.
     """
     p = vehicle_file(name_or_path)
+    if p.is_dir():  # was "no such vehicle file"
+        raise VehicleError(f"{name_or_path}: is a directory, not a vehicle file")
     if not p.is_file():
         known = ", ".join(sorted(f.stem for f in VEHICLE_DIR.glob("*.toml")))
         raise VehicleError(f"{name_or_path}: no such vehicle file (bundled vehicles: {known})")
@@ -308,12 +310,14 @@ def vehicle_file(name_or_path: str | os.PathLike) -> Path:
 
 def read_toml(path: Path, error: type = ValueError) -> tuple[str, dict]:
     """(text, TOML document) of the file `path` (UTF-8, a byte-order mark allowed); else
-    `error` naming the file: not UTF-8 (the byte), not valid TOML (the line and column). The
-    reading of vehicle and sweep files."""
+    `error` naming the file: not readable (the system's reason), not UTF-8 (the byte), not
+    valid TOML (the line and column). The reading of vehicle and sweep files."""
     try:
         text = path.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise error(f"{path}: not UTF-8 text (byte {e.start})") from None
+    except OSError as e:  # "[Errno 5] Input/output error" named no file
+        raise error(f"{path}: cannot read ({e.strerror or e})") from None
     try:
         return text, tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:

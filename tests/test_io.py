@@ -244,3 +244,21 @@ def test_missing_csv_column_and_other_files(tmp_path):
     b.write_bytes(b"<s>,<v>\n\xff\xfe\x00\n")
     with pytest.raises(RouteError, match="not UTF-8"):
         load_route(b)
+
+
+def test_a_directory_or_an_unreadable_file_is_named(tmp_path, monkeypatch):
+    """A directory was "unknown route format '.1'" (vecto-3.0.1/) or "''"; a file the system
+    cannot read (/proc/self/mem behind a link) was "[Errno 5] Input/output error", no file
+    named."""
+    for d in (VECTO, ROUTE_DIR, tmp_path):
+        with pytest.raises(RouteError, match=f"^{d}: is a directory, not a route file$"):
+            load_route(d)
+    p = tmp_path / "r.csv"
+    p.write_text(CSV_TEXT)
+
+    def broken(self):
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(type(p), "read_bytes", broken)
+    with pytest.raises(RouteError, match=rf"^{p}: cannot read \(Input/output error\)$"):
+        load_route(p)

@@ -192,6 +192,21 @@ def test_not_toml_and_no_such_vehicle(tmp_path):
         load_vehicle("no_such_truck")
 
 
+def test_a_directory_or_an_unreadable_vehicle_file_is_named(tmp_path, monkeypatch):
+    """A directory was "no such vehicle file"; a file the system cannot read was "[Errno 5]
+    Input/output error", no file named."""
+    with pytest.raises(VehicleError, match=f"^{VEHICLE_DIR}: is a directory, not a vehicle "
+                                           f"file$"):
+        load_vehicle(VEHICLE_DIR)
+
+    def broken(self):
+        raise OSError(5, "Input/output error")
+
+    monkeypatch.setattr(type(REF), "read_bytes", broken)
+    with pytest.raises(VehicleError, match=rf"^{REF}: cannot read \(Input/output error\)$"):
+        load_vehicle(REF)
+
+
 def test_vehicle_file_encoding(tmp_path):
     """A vehicle file may start with a UTF-8 byte-order mark, as route and sweep files may;
     bytes that are not UTF-8 are an error naming the file."""

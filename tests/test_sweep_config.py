@@ -154,6 +154,17 @@ def test_bad_route_file_is_named(tmp_path):
         sw.load_config(write(tmp_path, text))
 
 
+def test_a_route_or_vehicle_that_is_a_directory_is_named(tmp_path):
+    """routes = ["<a directory>"] was "unknown route format ''"."""
+    (tmp_path / "r.d").mkdir()
+    for key, old, new, what in (("routes", '"short_track"', '"r.d"', "route"),
+                                ("vehicle", "batch_size", 'vehicle = "r.d"\nbatch_size',
+                                 "vehicle")):
+        with pytest.raises(sw.SweepError, match=f"{key}: .*r\\.d: is a directory, not a "
+                                                f"{what} file"):
+            sw.load_config(write(tmp_path, GOOD.replace(old, new)))
+
+
 def test_route_names_that_share_a_file_name_or_are_too_long_are_refused(tmp_path):
     """Route names stand in the chunks' and the figures' file names: "x y" and "x_y" both became
     saving_heatmap_x_y.png (one route's figure lost), and a 215-character name failed with

@@ -52,6 +52,8 @@ def load_route(
     `RouteError` (a `ValueError`) naming the file, line and column.
     """
     p = resolve_route(path_or_name)
+    if p.is_dir():  # was "unknown route format '.1'" for vecto-3.0.1/
+        raise RouteError(f"{p}: is a directory, not a route file")
     reader = READERS.get(p.suffix.lower())
     if reader is None:
         raise RouteError(f"{p}: unknown route format {p.suffix!r} (expected .vdri or .csv)")

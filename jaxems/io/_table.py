@@ -23,6 +23,8 @@ def read_lines(path: str | Path) -> list[tuple[int, str]]:
         text = p.read_bytes().decode("utf-8-sig")
     except UnicodeDecodeError as e:
         raise RouteError(f"{path}: not UTF-8 text (byte {e.start})") from None
+    except OSError as e:  # "[Errno 5] Input/output error" named no file
+        raise RouteError(f"{path}: cannot read ({e.strerror or e})") from None
     out = []
     for i, line in enumerate(text.splitlines(), start=1):
         stripped = line.strip()
