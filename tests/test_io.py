@@ -153,6 +153,8 @@ BAD = [
     # a value beyond the header's columns was dropped; a column named twice read the first
     ("long row", "<s>,<v>,<grad>,<stop>\n0,50,0,0,7\n100,50,0,0\n", 2, None, "5 values for 4"),
     ("column twice", "<s>,<v>,<grad>,<v>\n0,50,0,0\n100,50,0,0\n", 1, "<v>", "appears 2 times"),
+    ("underscore", "<s>,<v>,<grad>,<stop>\n0,50,0,0\n1_00,50,0,0\n", 3, "<s>",
+     r"not a number \('1_00'\)"),
 ]
 
 
@@ -191,6 +193,10 @@ CSV_HEAD = "distance_m,speed_limit_km_h,gradient_pct,stop_s\n"
         ("0,25,0,0\n0.001,25,0,0\n", 3, "distance_m", "outside 1 m"),
         # a decimal comma: 1,5 % was read as 1 % with the 5 dropped
         ("0,25,1,5,0\n100,25,0,0\n", 2, None, "5 values for 4 columns .*decimal comma"),
+        # Python's float() reads 1_0 as 10 and Arabic-Indic digits as digits
+        ("0,25,0,0\n500,25,1_0,0\n", 3, "gradient_pct", r"not a number \('1_0'\)"),
+        ("0,25,0,0\n\u0665\u0660\u0660,25,0,0\n", 3, "distance_m", "not a number"),
+        ("0,25,0,0\n500,25,inf,0\n", 3, "gradient_pct", r"not a finite number \('inf'\)"),
     ],
 )
 def test_bad_csv(tmp_path, body, line, col, words):

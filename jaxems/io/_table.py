@@ -3,9 +3,16 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 from ..route import RouteError, Row
+
+
+# a number as the files write it: decimal digits with a point and an exponent, or inf / nan
+# (refused as not finite); Python's float() also reads 1_0 as 10 and other scripts' digits
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?|[+-]?(inf|infinity|nan)",
+                     re.ASCII | re.IGNORECASE)
 
 
 def read_lines(path: str | Path) -> list[tuple[int, str]]:
@@ -84,6 +91,8 @@ def parse_table(
         for field, k in idx.items():
             cell = cells[k]
             try:
+                if not _NUMBER.fullmatch(cell):
+                    raise ValueError(cell)
                 x = float(cell)
             except ValueError:
                 raise RouteError(
