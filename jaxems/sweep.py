@@ -506,7 +506,8 @@ def option_pairs(pairs, where: str = "--option", strategy=None) -> dict:
     `l2_pieces=64`), checked as a sweep file's options table is (`strategy_options`, for
     `strategy`: a name or a list).
 
-    Raises `SweepError` naming the pair, or the option, that is bad."""
+    Raises `SweepError` naming the pair, or the option, that is bad (a value that is not one
+    TOML value: "--option n_iter: not a valid value ('abc')")."""
     out = {}
     for pair in pairs:
         name, sep, value = pair.partition("=")
@@ -515,9 +516,17 @@ def option_pairs(pairs, where: str = "--option", strategy=None) -> dict:
                 raise ValueError("expected NAME=VALUE")
             if name.strip() in out:  # the first would be dropped without a word
                 raise ValueError(f"{name.strip()} given twice")
-            out[name.strip()] = tomllib.loads(f"v = {value.strip()}")["v"]
-        except (ValueError, tomllib.TOMLDecodeError) as e:
+        except ValueError as e:
             raise SweepError(f"{where} {pair!r}: {e}") from None
+        name, value = name.strip(), value.strip()
+        try:  # one line: 'plant_extra=0.2\nend_cap=false' set end_cap in the TOML, dropped
+            doc = None if "\n" in value or "\r" in value else tomllib.loads(f"v = {value}")
+        except tomllib.TOMLDecodeError:  # its column counted the "v = " put before the value
+            doc = None
+        if doc is None or set(doc) != {"v"}:
+            raise SweepError(f"{where} {name}: not a valid value ({value!r}; one TOML value "
+                             f"on one line: 2, 0.5, true, \"text\")")
+        out[name] = doc["v"]
     strategy_options(out, where, strategy)
     return out
 

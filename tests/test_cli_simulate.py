@@ -187,6 +187,12 @@ def test_simulate_registered():
         (["--option", "bogus=1"], "--option: unknown option 'bogus'"),
         (["--option", "l2_pieces"], "--option 'l2_pieces': expected NAME=VALUE"),
         (["--option", "n_iter=0"], "n_iter: must be a whole number >= 1"),
+        # "Invalid value (at line 1, column 5)", the column counting an internal "v = "; the
+        # part after a newline was parsed as TOML and dropped
+        (["--option", "n_iter=abc"], "--option n_iter: not a valid value ('abc'; one TOML "
+                                     "value on one line"),
+        (["--option", "plant_extra=0.2\nend_cap=false"],
+         "--option plant_extra: not a valid value ('0.2\\nend_cap=false';"),
         (["--option", "n_iter=2", "--n-iter", "3"], "--n-iter: given twice"),
         (["--option", "dwell=2", "--option", "dwell=4"], "dwell given twice"),  # kept the last
         # an option the strategy ignores would change nothing
