@@ -120,14 +120,15 @@ class VehicleParams(NamedTuple):
 # --------------------------------------------------------------------------------------------
 # TOML schema: (section, key) -> (field, scale, check). `check` is one of
 # "pos" (> 0), "nonneg" (>= 0), "frac" (0 < x <= 1), "unit" (0 <= x <= 1), "any", "curve+",
-# "curve-" (a list of numbers, positive / negative), "speeds" (strictly increasing, >= 0).
+# "curve-" (a list of numbers, positive / negative), "speeds" (strictly increasing, >= 0), or
+# another rule of `_NUMBER_RULES` (a plausible range: "mass", "area", "gear_base", ...).
 _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("vehicle", "mass_kg"): ("mass", 1.0, "mass"),
-    ("vehicle", "air_density_kg_m3"): ("rho", 1.0, "pos"),
-    ("vehicle", "drag_coefficient"): ("c_w", 1.0, "nonneg"),
-    ("vehicle", "frontal_area_m2"): ("area", 1.0, "pos"),
-    ("vehicle", "rolling_resistance"): ("c_r", 1.0, "nonneg"),
-    ("vehicle", "gravity_m_s2"): ("g", 1.0, "pos"),
+    ("vehicle", "air_density_kg_m3"): ("rho", 1.0, "rho"),
+    ("vehicle", "drag_coefficient"): ("c_w", 1.0, "drag"),
+    ("vehicle", "frontal_area_m2"): ("area", 1.0, "area"),
+    ("vehicle", "rolling_resistance"): ("c_r", 1.0, "rolling"),
+    ("vehicle", "gravity_m_s2"): ("g", 1.0, "gravity"),
     ("engine", "efficiency"): ("eta_e", 1.0, "frac"),
     ("engine", "speed_min_rpm"): ("we_min", RPM, "pos"),
     ("engine", "speed_max_rpm"): ("we_max", RPM, "pos"),
@@ -148,15 +149,15 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "beta"),
     ("battery", "capacity_J"): ("E_b_max", 1.0, "capacity"),
     ("battery", "initial_fraction"): ("soc0", 1.0, "unit"),
-    ("gearbox", "base"): ("_gear_base", 1.0, "pos"),
+    ("gearbox", "base"): ("_gear_base", 1.0, "gear_base"),
     ("gearbox", "gears"): ("_gears", 1.0, "int"),
     ("gearbox", "final_drive_rpm_per_m_s"): ("r_d", RPM, "pos"),
     ("switching", "mode_open_s"): ("dt_M", 1.0, "nonneg"),
     ("switching", "gear_open_s"): ("dt_G", 1.0, "nonneg"),
     ("fuel", "lower_heating_value_J_per_kg"): ("lhv", 1.0, "lhv"),
     ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "density"),
-    ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "pos"),
-    ("driving", "max_deceleration_m_s2"): ("a_min", 1.0, "pos"),
+    ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "accel"),
+    ("driving", "max_deceleration_m_s2"): ("a_min", 1.0, "accel"),
     ("driving", "cruise_speed_km_h"): ("v_cruise", KMH, "cruise"),
     ("driving", "prediction_engine_speed_rpm"): ("w_pred", RPM, "pos"),
 }
@@ -189,6 +190,18 @@ _NUMBER_RULES = {
     "mass": (lambda x: 1e3 <= x <= 2e5, "must be from 1000 to 200000 kg (1 to 200 t)"),
     "lhv": (lambda x: 1e6 <= x <= 1e9, "must be from 1e6 to 1e9 J/kg (diesel: 42.8e6)"),
     "density": (lambda x: 0.01 <= x <= 10, "must be from 0.01 to 10 kg/l (diesel: 0.83)"),
+    # the road load's and the driving's: 1e300 m^2 of frontal area, g or rolling resistance
+    # ran to a 300-digit traction energy, or to a trip of 0.0 s (infeasible-route), exit 0
+    "rho": (lambda x: 0 < x <= 10, "must be > 0 and at most 10 kg/m^3 (air: 1.2)"),
+    "drag": (lambda x: 0 <= x <= 10, "must be from 0 to 10 (trucks: 0.5 to 0.8)"),
+    "area": (lambda x: 0 < x <= 100, "must be > 0 and at most 100 m^2 (trucks: about 10)"),
+    "rolling": (lambda x: 0 <= x <= 1, "must be from 0 to 1 (truck tyres: about 0.005)"),
+    "gravity": (lambda x: 1 <= x <= 100, "must be from 1 to 100 m/s^2 (the Earth's: 9.8)"),
+    "accel": (lambda x: 0 < x <= 20, "must be > 0 and at most 20 m/s^2 (2 g; trucks: about 1)"),
+    # the ratio of a gear to the next: at 1e30 the ratios base^(gears - G) overflowed (a NumPy
+    # warning, then "gear_ratio: ratios must be finite"); 10^31 (32 gears) is finite
+    "gear_base": (lambda x: 0 < x <= 10, "must be > 0 and at most 10 (one gear's ratio to the "
+                                         "next; trucks: 1.2 to 1.5)"),
     # the cruise speed (in the file's km/h): not below the slowest speed Level 3 predicts
     "cruise": (lambda x: x >= SPEED_MIN_KMH,
                f"must be >= {SPEED_MIN_KMH:g} km/h, the slowest the prediction drives"),
@@ -199,7 +212,8 @@ def check_number(value: Any, kind: str, where: str, error: type = ValueError) ->
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
     (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, zero_one 0 or 1, beta >=
     BETA_MIN, motor > 0, cruise >= SPEED_MIN_KMH, and the plausible ranges of mass, capacity,
-    lhv and density); else raises `error` naming
+    lhv, density, rho, drag, area, rolling, gravity, accel and gear_base); else raises `error`
+    naming
     `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{where}: expected a number (got {value!r})")

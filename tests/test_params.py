@@ -3,6 +3,7 @@
 import math
 import re
 import tomllib
+import warnings
 
 import numpy as np
 import pytest
@@ -111,7 +112,7 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("vehicle", "mass_kg", "heavy", "expected a number"),
         ("vehicle", "mass_kg", True, "expected a number"),
         ("vehicle", "mass_kg", float("nan"), "finite"),
-        ("vehicle", "rolling_resistance", -0.001, "must be >= 0"),
+        ("vehicle", "rolling_resistance", -0.001, "must be from 0 to 1"),
         ("engine", "efficiency", 1.2, r"must be in \(0, 1\]"),
         ("battery", "initial_fraction", 1.5, r"must be in \[0, 1\]"),
         ("gearbox", "gears", 2.5, "whole number"),
@@ -141,13 +142,26 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("driving", "prediction_engine_speed_rpm", 100.0, "must be within"),
         ("gearbox", "base", 1.0, "must be > 1 with more than one gear"),
         ("gearbox", "base", 0.8, "must be > 1"),
+        # absurd values ran on: 1e300 m^2 to a 300-digit energy, 1e300 of gravity or rolling
+        # resistance to a trip of 0.0 s, a base of 1e30 to an overflow warning and
+        # "gear_ratio: ratios must be finite"
+        ("gearbox", "base", 1e30, "must be > 0 and at most 10"),
+        ("vehicle", "frontal_area_m2", 1e300, r"must be > 0 and at most 100 m\^2"),
+        ("vehicle", "gravity_m_s2", 1e300, "must be from 1 to 100 m/s"),
+        ("vehicle", "gravity_m_s2", 0.5, "must be from 1 to 100 m/s"),
+        ("vehicle", "rolling_resistance", 1e300, "must be from 0 to 1 "),
+        ("vehicle", "drag_coefficient", 11.0, "must be from 0 to 10 "),
+        ("vehicle", "air_density_kg_m3", 1e3, "must be > 0 and at most 10 kg/m"),
+        ("driving", "max_acceleration_m_s2", 1e300, "must be > 0 and at most 20 m/s"),
+        ("driving", "max_deceleration_m_s2", 21.0, "must be > 0 and at most 20 m/s"),
     ],
 )
 def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
     doc = _doc()
     doc[section][key] = value
     p = _write(tmp_path, doc)
-    with pytest.raises(VehicleError) as e:
+    with pytest.raises(VehicleError) as e, warnings.catch_warnings():
+        warnings.simplefilter("error")  # one error, no NumPy warning before it
         load_vehicle(p)
     msg = str(e.value)
     assert str(p) in msg and f"{section}.{key}" in msg
@@ -304,7 +318,9 @@ def test_check_vehicle_holds_curves_gears_and_the_motor_flag(field, change, why)
         ("mass", -1.0, "must be from 1000 to 200000 kg"),
         ("soc0", 1.5, r"must be in \[0, 1\]"),
         ("eta_e", 1.2, r"must be in \(0, 1\]"),
-        ("c_r", -0.001, "must be >= 0"),
+        ("c_r", -0.001, "must be from 0 to 1"),
+        ("area", 1e300, "must be > 0 and at most 100"),
+        ("g", 1e300, "must be from 1 to 100"),
         ("E_b_max", float("nan"), "expected a finite number"),
         ("we_max", 10.0, "must exceed we_min"),
         ("w_pred", 500.0, r"must be within \[we_min, we_max\]"),
