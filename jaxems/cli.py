@@ -433,7 +433,11 @@ def cmd_simulate(args) -> int:
             unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
             if out["charge_missed"]:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
-        if key == "trip_time_s" and "unfinished" in out["status"]:  # no trip time to compare
+        if key == "trip_time_s" and "infeasible-route" in out["status"]:  # it printed 0.0 s,
+            # -100 % against Level 3's trip
+            text, unit = "-", ("(an infeasible route: the truck cannot climb it, as Level 3 "
+                               "predicts it; no trip time to compare)")
+        elif key == "trip_time_s" and "unfinished" in out["status"]:  # no trip time either
             text, unit = "-", ("(the run did not reach the route's end: its fuel and battery "
                                "figures are over the steps it ran)")
         elif key == "trip_time_s":  # against the Level 3 prediction the run followed

@@ -246,6 +246,7 @@ class _FakeRun:
     (0.039e6, "ok", False),  # within 1 %
     (0.041e6, "ok", True),
     (-1.0e6, "unfinished", False),  # an unfinished run's balance is no charge verdict
+    (-1.0e6, "infeasible-route", False),
 ])
 def test_simulate_flags_a_charge_miss_as_sweep_reports_do(capsys, monkeypatch, delta, status,
                                                           missed):
@@ -260,10 +261,14 @@ def test_simulate_flags_a_charge_miss_as_sweep_reports_do(capsys, monkeypatch, d
     code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
     line = next(x for x in out.splitlines() if x.startswith("delta E_b"))
     assert line.endswith("beyond 1 %: not charge sustaining") is missed
-    # an unfinished run has no trip time to set against Level 3's (it printed 0 s, -100 %)
+    # an unfinished run, or one on a route the truck cannot climb, has no trip time to set
+    # against Level 3's (it printed 0.0 s, -100 %)
     trip = next(x for x in out.splitlines() if x.startswith("trip time"))
     assert ("did not reach the route's end" in trip) is (status == "unfinished")
-    assert ("Level 3: 151.9 s" in trip) is (status != "unfinished")
+    assert ("an infeasible route: the truck cannot climb it" in trip) is (
+        status == "infeasible-route")
+    assert ("Level 3: 151.9 s" in trip) is (status == "ok")
+    assert trip.split()[2] == ("153.0" if status == "ok" else "-")
 
 
 def test_simulate_passes_options_on_and_echoes_them(capsys, monkeypatch):
