@@ -90,9 +90,10 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
     """Validate source rows; `cols` are the file's names of (s, v, grad, stop) for messages.
 
     Raises `RouteError` naming file, line and column for: too few rows, distance not
-    increasing, a length outside LENGTH_RANGE_M, negative speed, speed above 200 km/h or in (0,
-    1.8) km/h, gradient beyond +-30 %, negative stop time or one above a day, a stop row (v =
-    0) with no duration, a stop time on a moving row, no moving row.
+    increasing or starting below 0, a length outside LENGTH_RANGE_M, negative speed, speed
+    above 200 km/h or in (0, 1.8) km/h, gradient beyond +-30 %, negative stop time or one
+    above a day, a stop row (v = 0) with no duration, a stop time on a moving row, no moving
+    row.
     """
     c_s, c_v, c_g, c_stop = cols
     if len(rows) == 0:
@@ -142,6 +143,9 @@ def check_rows(rows: Sequence[Row], source: str, cols: tuple[str, str, str, str]
                 f"{_where(source, r.line, c_stop)}: stop time {r.stop_s:g} s on a row with speed "
                 f"{r.v_kmh:g} km/h; a stop row has speed 0"
             )
+    if rows[0].s_m < 0:  # -100 was taken as the route's start
+        raise RouteError(f"{_where(source, rows[0].line, c_s)}: the distance starts at "
+                         f"{rows[0].s_m:g} m; distances are >= 0 (the distance travelled)")
     for prev, r in zip(rows[:-1], rows[1:], strict=True):
         if not r.s_m > prev.s_m:
             raise RouteError(

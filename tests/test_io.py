@@ -197,6 +197,8 @@ CSV_HEAD = "distance_m,speed_limit_km_h,gradient_pct,stop_s\n"
         ("0,25,0,0\n500,25,1_0,0\n", 3, "gradient_pct", r"not a number \('1_0'\)"),
         ("0,25,0,0\n\u0665\u0660\u0660,25,0,0\n", 3, "distance_m", "not a number"),
         ("0,25,0,0\n500,25,inf,0\n", 3, "gradient_pct", r"not a finite number \('inf'\)"),
+        # a route starting at -100 m was taken
+        ("-100,25,0,0\n500,25,0,0\n", 2, "distance_m", "the distance starts at -100 m"),
     ],
 )
 def test_bad_csv(tmp_path, body, line, col, words):
