@@ -1105,7 +1105,12 @@ def load_sweep(directory: str | Path):
     if res.exists():
         newest = max((p.stat().st_mtime for p in chunks), default=0.0)
         if res.stat().st_mtime >= newest:
-            df = pd.read_parquet(res)
+            try:
+                df = pd.read_parquet(res)
+            except Exception as e:  # noqa: BLE001 (pyarrow's errors, as in `_read_chunk`)
+                raise SweepError(f"{res}: not a readable Parquet file ({type(e).__name__}: "
+                                 f"{e}); delete it and run the sweep again with --resume, "
+                                 f"which merges its chunks into it again") from None
             if set(df["chunk"]) == {p.stem for p in chunks}:
                 return df
     return assemble(d)

@@ -230,6 +230,16 @@ def test_report_of_a_missing_directory_is_an_error(tmp_path, capsys):
     assert "not a jaxems sweep directory" in capsys.readouterr().err
 
 
+def test_a_corrupt_results_file_is_named_with_what_to_do(tmp_path, capsys):
+    """A results.parquet damaged outside jaxems gave pyarrow's message alone."""
+    d = write_dir(tmp_path, synthetic())
+    (d / sw.RESULTS_FILE).write_bytes(b"PAR1 not parquet")  # newer than every chunk
+    assert rp.main([str(d)]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"jaxems: error: {d / sw.RESULTS_FILE}: not a readable Parquet file (")
+    assert "delete it and run the sweep again with --resume" in err and err.count("\n") == 1
+
+
 def test_load_sweep_merges_again_where_a_chunk_file_is_gone(tmp_path):
     """results.parquet is the merged chunks while they are the same: a chunk file deleted
     since (to recompute it) was still reported ("12 of 12 configurations")."""
