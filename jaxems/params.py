@@ -252,6 +252,8 @@ def params_from_dict(doc: dict, source: str = "<dict>") -> VehicleParams:
     """Build and validate `VehicleParams` from a parsed TOML document (sections as in the file)."""
     for section, body in doc.items():
         if section == "name":
+            if not isinstance(body, str):  # name = 5 was taken
+                raise VehicleError(f"{source}: name: expected a text in quotes (got {body!r})")
             continue
         if section not in _SECTIONS:
             raise VehicleError(f"{source}: unknown section [{section}]")
@@ -367,7 +369,8 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
                 check_number(float(v), kind, f"{field}[{i}]", VehicleError)
     try:
         we_min, we_max, w_pred = (np.asarray(x) for x in (vp.we_min, vp.we_max, vp.w_pred))
-        rules = (("we_max", we_max <= we_min, "must exceed we_min (the engine's speed range)"),
+        rules = ((("we_min", "we_max"), we_max <= we_min,
+                  "the engine's speed range is empty (we_max must exceed we_min)"),
                  ("w_pred", (w_pred < we_min) | (w_pred > we_max),
                   "must be within [we_min, we_max] (the engine's speed range)"))
         rules += _array_rules(vp)
@@ -375,8 +378,10 @@ def check_vehicle(vp: VehicleParams) -> VehicleParams:
         return vp
     for field, broken, words in rules:
         bad = np.flatnonzero(np.reshape(broken, -1))
-        if bad.size:
-            raise VehicleError(f"{field}{'' if np.ndim(broken) == 0 else f'[{bad[0]}]'}: {words}")
+        if bad.size:  # a rule across fields names each (a grid sets one of them)
+            at = '' if np.ndim(broken) == 0 else f'[{bad[0]}]'
+            names = ", ".join(f"{f}{at}" for f in ((field,) if isinstance(field, str) else field))
+            raise VehicleError(f"{names}: {words}")
     return vp
 
 

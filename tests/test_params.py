@@ -322,7 +322,6 @@ def test_check_vehicle_holds_curves_gears_and_the_motor_flag(field, change, why)
         ("area", 1e300, "must be > 0 and at most 100"),
         ("g", 1e300, "must be from 1 to 100"),
         ("E_b_max", float("nan"), "expected a finite number"),
-        ("we_max", 10.0, "must exceed we_min"),
         ("w_pred", 500.0, r"must be within \[we_min, we_max\]"),
         ("beta", 1e-15, "must be >= 1e-12"),
         ("pm_max", 0.0, "must be > 0 .the truck without its motor: the conventional"),
@@ -340,6 +339,27 @@ def test_check_vehicle_names_the_field_and_the_vehicle(field, value, why):
     batch = stack_vehicles([vp, vp.replace(mass=30000.0), vp.replace(**{field: value}), vp])
     with pytest.raises(VehicleError, match=rf"^{field}\[2\]: {why}"):
         check_vehicle(batch)
+
+
+def test_an_empty_engine_speed_range_names_both_ends():
+    """we_max <= we_min names both fields: a sweep's grid setting we_min = [1000] (rad/s) was
+    "we_max[0]: must exceed we_min", naming the field it did not set."""
+    vp = load_vehicle()
+    why = r"the engine's speed range is empty \(we_max must exceed we_min\)"
+    with pytest.raises(VehicleError, match=rf"^we_min, we_max: {why}"):
+        check_vehicle(vp.replace(we_max=10.0))
+    batch = stack_vehicles([vp, vp.replace(we_min=1000.0)])
+    with pytest.raises(VehicleError, match=rf"^we_min\[1\], we_max\[1\]: {why}"):
+        check_vehicle(batch)
+
+
+def test_a_vehicle_name_is_text(tmp_path):
+    doc = _doc()
+    doc["name"] = 5
+    p = _write(tmp_path, doc)
+    with pytest.raises(VehicleError, match=re.escape(f"{p}: name: expected a text in quotes "
+                                                     f"(got 5)")):
+        load_vehicle(p)
 
 
 def test_host_apis_check_the_vehicle_before_compiling():

@@ -88,7 +88,8 @@ def test_good_file_parses(tmp_path):
         # checked here, not in every chunk (each chunk failed with the sweep's exit status 0)
         (GOOD.replace("batch_size = 4", "dt_s = 100\nbatch_size = 4"),
          r"s\.toml: dt_s: must be a time step from 0\.05 to 10 s \(got 100\.0\)"),
-        (GOOD + "we_min = [1e9]\n", r"s\.toml: grid: we_max\[0\]: must exceed we_min"),
+        (GOOD + "we_min = [1e9]\n", r"s\.toml: grid: we_min\[0\], we_max\[0\]: the engine's "
+                                    r"speed range is empty"),
         (GOOD + "[options.baseline]\nkp = inf\n", r"options\.baseline: kp: must be a finite"),
         (GOOD + "[options.baseline]\nsustain = 'maybe'\n", r"sustain: must be true or false"),
         # a chunk's arrays are padded to batch_size: 1e9 ran out of memory on one grid point
