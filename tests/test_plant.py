@@ -206,12 +206,15 @@ def run_fixed_gear(gear):
 def test_protection_keeps_up_with_the_reference(gear):
     # a requested gear that cannot deliver the reference's acceleration at the current speed is
     # replaced by one that can: the truck stays close behind the reference (with only holding
-    # speed asked of the state it fell 1.6-2.8 m/s behind, 0.14-0.23 m/s on average)
+    # speed asked of the state it fell 1.6-2.8 m/s behind, 0.14-0.23 m/s on average). Asked
+    # for gear 10 from below, where it serves but not after the upshift, Level 0 steps up
+    # through the gears between (`plant.protected_state`): open seconds more on the way, 1.24
+    # m/s behind at most, 0.05 on average, a trip 0.6 s longer (before the steps 0.82 / 0.03)
     res = run_fixed_gear(jnp.asarray(gear))
     assert bool(res.final.done)
     live = np.asarray(res.trace.t) < float(res.final.tot.trip_time)
     short = (np.asarray(res.trace.v_ref) - np.asarray(res.trace.v))[live]
-    assert short.max() < 1.0 and short.mean() < 0.1
+    assert short.max() < 1.4 and short.mean() < 0.1
     assert float(res.final.tot.trip_time) <= float(PRED.trip_time) * 1.03 + 1
 
 
@@ -583,6 +586,19 @@ def test_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s
     battery."""
     assert_protection_equals_its_loop(v, grade, extra, E_frac, lam, mass, s_req, s_cur, hybrid,
                                       pb_plan)
+
+
+def test_protection_steps_toward_a_request_only_its_switch_keeps_out():
+    """On 7.5 % at 30 km/h (18.2 t, M_c in gear 7, 40 kW over the road load's power), gear 10
+    serves but not after an upshift's open second, and gears 8 and 9 do: Level 0 takes gear 9,
+    the nearest the request (held in gear 7, the plant climbed 800 m there and burnt 11 % more
+    than the conventional truck). Gears 11 and 12 do not serve at that speed at all, a request
+    that may serve a step later: it holds gear 7, as before (no hunting)."""
+    G = VP.gear_ratio.shape[0]
+    got = [assert_protection_equals_its_loop(8.33, 0.075, 40e3, 0.5, -2.48, 18173.3,
+                                             ps.MC * G + g, ps.MC * G + 6, True)
+           for g in (9, 10, 11)]
+    assert got == [ps.MC * G + 8, ps.MC * G + 6, ps.MC * G + 6]
 
 
 @settings(max_examples=60, deadline=None)
