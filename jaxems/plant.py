@@ -425,8 +425,9 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     driveline: switched into, it must also at v_after, the speed left after the open time), or
     at rest (`requested_serves`); else, where s_cur still serves, s_cur (no hunting), but
     where the request is another gear in s_cur's mode that serves at v_op, kept out only by
-    the speed its switch's open time takes, the gear strictly between the two nearest the
-    requested that serves after the switch, where one does (on a climb at 30 km/h the plan
+    the speed its switch's open time takes, and v_op turns it at least at the engine's idle
+    speed (not in a launch), the gear strictly between the two nearest the requested that
+    serves after the switch, where one does (on a climb at 30 km/h the plan
     cruised in M_c in gear 10, which no upshift reaches there; the plant held gear 7, where
     its upshifts had fallen behind, though 8 and 9 served, and burnt 11 % more than the
     conventional truck, which held gear 9; a step across modes too moved Urban Delivery's
@@ -464,7 +465,10 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     alt = jnp.argmin(in_mode)
     gears = jnp.arange(Hf.shape[0]) % n_g
     g_cur, g_req = s_cur % n_g, s_req % n_g
-    between = (ok_now[s_req] & (s_cur // n_g == s_req // n_g) & same_mode & ok_after
+    # not in a launch: at or above the speed at which the requested gear turns the engine at
+    # idle (below it the greedy test controller's requests stepped the launch through gears)
+    driving = v_op * jnp.asarray(vp.gear_ratio)[g_req] * vp.r_d >= vp.we_min
+    between = (driving & ok_now[s_req] & (s_cur // n_g == s_req // n_g) & same_mode & ok_after
                & ((gears - g_cur) * (g_req - gears) > 0))  # (S,)
     toward = jnp.argmin(jnp.where(between, jnp.abs(gears - g_req), n_g))
     held = jnp.where(between[toward], toward, s_cur)

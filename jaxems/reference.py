@@ -1588,13 +1588,13 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt,
     """Level 0 (`plant.protected_state`), evaluating every state: the requested state where it
     serves (at v_op, and at v_after when switched into) or at rest; else, where the current
     one serves, the current one, but where the request is another gear in the current mode
-    that serves at v_op, the gear strictly between the two nearest the requested that serves
-    after the switch, where one does; else the requested mode's gear of least H that serves
-    after the switch; else the state of least H that serves after; else the current one where
-    it runs (not open) and delivers at least what any other could after the switch; else the
-    state of least H that serves now; else the most capable. A state serves with its motor
-    limited by the battery and, with the engine connected, by a plan's battery power pb_plan
-    where finite."""
+    that serves at v_op, turned at least at the engine's idle speed there, the gear strictly
+    between the two nearest the requested that serves after the switch, where one does; else
+    the requested mode's gear of least H that serves after the switch; else the state of least
+    H that serves after; else the current one where it runs (not open) and delivers at least
+    what any other could after the switch; else the state of least H that serves now; else the
+    most capable. A state serves with its motor limited by the battery and, with the engine
+    connected, by a plan's battery power pb_plan where finite."""
     G = f.gear_ratio.shape[0]
     S = N_MODES * G
 
@@ -1611,7 +1611,9 @@ def _protect(f, vp, E_b, P_need, v_op, v_after, lam, s_req, s_cur, at_rest, dt,
     H = split_table(vp, [P_need], [v_op], lam).H[0].reshape(-1)  # inf where infeasible
     if ok_now[s_cur]:
         g_cur, g_req = s_cur % G, s_req % G
-        between = [s for s in range(S) if ok_now[s_req] and s // G == s_req // G == s_cur // G
+        driving = v_op * float(f.gear_ratio[g_req] * f.r_d) >= f.we_min  # not in a launch
+        between = [s for s in range(S) if driving and ok_now[s_req]
+                   and s // G == s_req // G == s_cur // G
                    and ok_after[s] and (s % G - g_cur) * (g_req - s % G) > 0]
         return min(between, key=lambda s: abs(s % G - g_req)) if between else s_cur
     in_mode = [H[s] if ok_after[s] and s // G == s_req // G else np.inf for s in range(S)]
