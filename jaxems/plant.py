@@ -427,11 +427,11 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     where the request is another gear in s_cur's mode that serves at v_op, kept out only by
     the speed its switch's open time takes, and v_op turns it at least at the engine's idle
     speed (not in a launch), the gear strictly between the two nearest the requested that
-    serves after the switch, where one does (on a climb at 30 km/h the plan
-    cruised in M_c in gear 10, which no upshift reaches there; the plant held gear 7, where
-    its upshifts had fallen behind, though 8 and 9 served, and burnt 11 % more than the
-    conventional truck, which held gear 9; a step across modes too moved Urban Delivery's
-    multilevel run 3 % of the battery off its charge); else
+    serves after the switch, where one does (on a climb at 30 km/h the plan cruised in M_c in
+    gear 10, which no upshift reaches there; the plant held gear 7, where its upshifts had
+    fallen behind, though 8 and 9 served, and burnt 11 % more than the conventional truck,
+    which held gear 9; a step across modes too moved Urban Delivery's multilevel run 3 % of
+    the battery off its charge); else
     the requested mode in the gear of least H (at lam) that serves, else the state of least H
     that serves, else s_cur where it runs (not open) and delivers at least what any other
     state could at v_after, else the state of least H that serves at v_op, else the most
