@@ -467,7 +467,7 @@ def protected_state(vp: VehicleParams, E_b, P_need, v_op, v_after, lam, s_req, s
     g_cur, g_req = s_cur % n_g, s_req % n_g
     # not in a launch: at or above the speed at which the requested gear turns the engine at
     # idle (below it the greedy test controller's requests stepped the launch through gears)
-    driving = v_op * jnp.asarray(vp.gear_ratio)[g_req] * vp.r_d >= vp.we_min
+    driving = pt.shaft_speeds(vp, v_op)[g_req] >= vp.we_min
     between = (driving & ok_now[s_req] & (s_cur // n_g == s_req // n_g) & same_mode & ok_after
                & ((gears - g_cur) * (g_req - gears) > 0))  # (S,)
     toward = jnp.argmin(jnp.where(between, jnp.abs(gears - g_req), n_g))
