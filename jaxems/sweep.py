@@ -1272,15 +1272,18 @@ def run_sweep(
     try:
         prepare_dir(cfg, out, resume=resume)
         with dir_lock(out):
-            return _run_locked(cfg, out, workers=workers, scheduler=scheduler, quiet=quiet,
-                               report=report, client=client or own_client, on_chunk=on_chunk)
+            return _run_locked(cfg, out, workers=workers, quiet=quiet, report=report,
+                               client=client or own_client, on_chunk=on_chunk)
     finally:
         if own_client is not None:
             own_client.close()
 
 
-def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, report, client,
+def _run_locked(cfg: SweepConfig, out: Path, *, workers, quiet, report, client,
                 on_chunk) -> SweepSummary:
+    """The sweep in its locked directory; client: a Dask client (the caller's, or the
+    scheduler's that `run_sweep` reached), or None: a local cluster of `workers` processes
+    where chunks remain and workers is given, else in-process."""
     _clean_temporaries(out)
     chunks = plan_chunks(cfg)
     points = _full_points(cfg)
@@ -1295,7 +1298,7 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, scheduler, quiet, repor
     own_client = None
     cluster = None
     if client is None and todo:
-        own_client, cluster = _executor(workers, scheduler, out / "jax-cache")
+        own_client, cluster = _executor(workers, None, out / "jax-cache")
         client = own_client
     backend = "in-process" if client is None else (
         f"Dask, {len(client.scheduler_info().get('workers', {}))} workers")
