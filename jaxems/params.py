@@ -132,8 +132,8 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("engine", "efficiency"): ("eta_e", 1.0, "frac"),
     ("engine", "speed_min_rpm"): ("we_min", RPM, "pos"),
     ("engine", "speed_max_rpm"): ("we_max", RPM, "pos"),
-    ("engine", "friction_lin_W_per_rad_s"): ("e0_lin", 1.0, "nonneg"),
-    ("engine", "friction_quad_W_per_rad2_s2"): ("e0_quad", 1.0, "nonneg"),
+    ("engine", "friction_lin_W_per_rad_s"): ("e0_lin", 1.0, "friction_lin"),
+    ("engine", "friction_quad_W_per_rad2_s2"): ("e0_quad", 1.0, "friction_quad"),
     ("engine", "max_torque_rpm"): ("te_max_w", RPM, "speeds"),
     ("engine", "max_torque_Nm"): ("te_max", 1.0, "curve+"),
     ("engine", "min_torque_rpm"): ("te_min_w", RPM, "speeds"),
@@ -143,8 +143,8 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("motor", "speed_max_rpm"): ("wm_max", RPM, "pos"),
     ("motor", "torque_max_Nm"): ("tm_max", 1.0, "motor"),
     ("motor", "power_max_W"): ("pm_max", 1.0, "motor"),
-    ("motor", "friction_lin_W_per_rad_s"): ("m0_lin", 1.0, "nonneg"),
-    ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "nonneg"),
+    ("motor", "friction_lin_W_per_rad_s"): ("m0_lin", 1.0, "friction_lin"),
+    ("motor", "friction_quad_W_per_rad2_s2"): ("m0_quad", 1.0, "friction_quad"),
     ("motor", "inertia_kg_m2"): ("I_m", 1.0, "nonneg"),
     ("battery", "loss_coefficient_per_W"): ("beta", 1.0, "beta"),
     ("battery", "capacity_J"): ("E_b_max", 1.0, "capacity"),
@@ -152,8 +152,8 @@ _SCHEMA: dict[tuple[str, str], tuple[str, float, str]] = {
     ("gearbox", "base"): ("_gear_base", 1.0, "gear_base"),
     ("gearbox", "gears"): ("_gears", 1.0, "int"),
     ("gearbox", "final_drive_rpm_per_m_s"): ("r_d", RPM, "pos"),
-    ("switching", "mode_open_s"): ("dt_M", 1.0, "nonneg"),
-    ("switching", "gear_open_s"): ("dt_G", 1.0, "nonneg"),
+    ("switching", "mode_open_s"): ("dt_M", 1.0, "open_time"),
+    ("switching", "gear_open_s"): ("dt_G", 1.0, "open_time"),
     ("fuel", "lower_heating_value_J_per_kg"): ("lhv", 1.0, "lhv"),
     ("fuel", "density_kg_per_l"): ("fuel_density", 1.0, "density"),
     ("driving", "max_acceleration_m_s2"): ("a_max", 1.0, "accel"),
@@ -202,6 +202,18 @@ _NUMBER_RULES = {
     # warning, then "gear_ratio: ratios must be finite"); 10^31 (32 gears) is finite
     "gear_base": (lambda x: 0 < x <= 10, "must be > 0 and at most 10 (one gear's ratio to the "
                                          "next; trucks: 1.2 to 1.5)"),
+    # the friction of the engine and the motor, P_0(w) = -(lin w + quad w^2): at 1e30 (or
+    # 1e300) a run's fuel was 5e33 J (5e303) with status ok, and a motor's made the hybrid the
+    # conventional truck without a word; at the bounds the friction at 2300 rpm is 2.4 MW and
+    # 5.8 MW, beyond what any truck's engine delivers (the reference truck's: about 370 kW)
+    "friction_lin": (lambda x: 0 <= x <= 1e4, "must be from 0 to 1e4 W/(rad/s) (the reference "
+                                              "truck's: 38.2 engine, 5 motor)"),
+    "friction_quad": (lambda x: 0 <= x <= 100, "must be from 0 to 100 W/(rad/s)^2 (the "
+                                               "reference truck's: 0.73 engine, 0.02 motor)"),
+    # the driveline's open time of a switch: at 1e30 s a switch held it open for the rest of
+    # the trip (an unfinished run of 0 to 0.1 MJ of fuel, exit 0); at 60 s the short track
+    # still runs to its end, in two to three times Level 3's trip time
+    "open_time": (lambda x: 0 <= x <= 60, "must be from 0 to 60 s (trucks: about 1 s)"),
     # the cruise speed (in the file's km/h): not below the slowest speed Level 3 predicts
     "cruise": (lambda x: x >= SPEED_MIN_KMH,
                f"must be >= {SPEED_MIN_KMH:g} km/h, the slowest the prediction drives"),
@@ -212,9 +224,9 @@ def check_number(value: Any, kind: str, where: str, error: type = ValueError) ->
     """`value` as a float where it is a finite number (not a bool) that meets `kind`'s rule
     (finite, pos, nonneg, frac (0, 1], unit [0, 1], int 1-32, zero_one 0 or 1, beta >=
     BETA_MIN, motor > 0, cruise >= SPEED_MIN_KMH, and the plausible ranges of mass, capacity,
-    lhv, density, rho, drag, area, rolling, gravity, accel and gear_base); else raises `error`
-    naming
-    `where`. The one scalar check of vehicle files, sweep files and the API's overrides."""
+    lhv, density, rho, drag, area, rolling, gravity, accel, gear_base, friction_lin,
+    friction_quad and open_time); else raises `error` naming `where`. The one scalar check of
+    vehicle files, sweep files and the API's overrides."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise error(f"{where}: expected a number (got {value!r})")
     x = float(value)

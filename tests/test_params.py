@@ -154,6 +154,19 @@ def test_missing_value_names_field_and_file(tmp_path, section, key):
         ("vehicle", "air_density_kg_m3", 1e3, "must be > 0 and at most 10 kg/m"),
         ("driving", "max_acceleration_m_s2", 1e300, "must be > 0 and at most 20 m/s"),
         ("driving", "max_deceleration_m_s2", 21.0, "must be > 0 and at most 20 m/s"),
+        # no air at all, or less: the lower bound of the air density
+        ("vehicle", "air_density_kg_m3", 0.0, "must be > 0 and at most 10 kg/m"),
+        ("vehicle", "air_density_kg_m3", -1.2, "must be > 0 and at most 10 kg/m"),
+        # a friction of 1e30 ran to 5e33 J of fuel with status ok (a motor's, to the hybrid as
+        # the conventional truck); an open time of 1e30 s to an unfinished run, exit 0
+        ("engine", "friction_lin_W_per_rad_s", 1e300, r"must be from 0 to 1e4 W/\(rad/s\)"),
+        ("engine", "friction_quad_W_per_rad2_s2", 1e30, r"must be from 0 to 100 W/\(rad/s\)\^2"),
+        ("engine", "friction_quad_W_per_rad2_s2", -0.1, "must be from 0 to 100"),
+        ("motor", "friction_lin_W_per_rad_s", 1e30, "must be from 0 to 1e4"),
+        ("motor", "friction_quad_W_per_rad2_s2", 1e300, "must be from 0 to 100"),
+        ("switching", "mode_open_s", 1e30, "must be from 0 to 60 s"),
+        ("switching", "gear_open_s", 1000.0, "must be from 0 to 60 s"),  # ms typed as s
+        ("switching", "gear_open_s", -1.0, "must be from 0 to 60 s"),
     ],
 )
 def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
@@ -166,6 +179,18 @@ def test_wrong_value_names_field_and_file(tmp_path, section, key, value, why):
     msg = str(e.value)
     assert str(p) in msg and f"{section}.{key}" in msg
     assert re.search(why, msg), msg
+
+
+def test_the_plausible_ranges_take_their_ends(tmp_path):
+    """The upper bounds are far from any truck's values and take their own ends: friction
+    (1e4 W/(rad/s), 100 W/(rad/s)^2) and open times (60 s)."""
+    doc = _doc()
+    for section in ("engine", "motor"):
+        doc[section]["friction_lin_W_per_rad_s"] = 1e4
+        doc[section]["friction_quad_W_per_rad2_s2"] = 100.0
+    doc["switching"]["mode_open_s"] = doc["switching"]["gear_open_s"] = 60.0
+    vp = load_vehicle(_write(tmp_path, doc))
+    assert (float(vp.e0_lin), float(vp.m0_quad), float(vp.dt_G)) == (1e4, 100.0, 60.0)
 
 
 def test_curve_length_mismatch(tmp_path):
@@ -325,6 +350,8 @@ def test_check_vehicle_holds_curves_gears_and_the_motor_flag(field, change, why)
         ("w_pred", 500.0, r"must be within \[we_min, we_max\]"),
         ("beta", 1e-15, "must be >= 1e-12"),
         ("pm_max", 0.0, "must be > 0 .the truck without its motor: the conventional"),
+        ("m0_quad", 1e300, "must be from 0 to 100 W"),
+        ("dt_M", 1e30, "must be from 0 to 60 s"),
         # the rules read a value in the file's unit: 1 km/h as m/s, the message in km/h
         ("v_cruise", 1.0 * KMH, r"must be >= 1.8 km/h.*\(got 1\.0"),
     ],
