@@ -201,6 +201,25 @@ def format_or_dash(x, fmt: str) -> str:
     return "-".rjust(width) if missing else format(x, fmt)
 
 
+# why a run has no trip time to show (a flag of its status -> the words), the first that
+# applies: on a route Level 3 predicts the truck cannot climb, the plant's trip (0.0 s, or a
+# hybrid's crawl up with its motor's help) is none to set against Level 3's (it printed 0.0 s,
+# -100 %); an unfinished run's is NaN
+NO_TRIP_TIME = {
+    "infeasible-route": "an infeasible route: the truck cannot climb it, as Level 3 predicts "
+                        "it; no trip time to compare",
+    "unfinished": "the run did not reach the route's end: its fuel and battery figures are over "
+                  "the steps it ran",
+}
+
+
+def no_trip_time(status: str) -> str | None:
+    """Why a run of `status` ('ok' or flags joined by '+') shows no trip time ('-' in the
+    `simulate` and `compare` tables), or None where it shows one."""
+    flags = status.split("+")
+    return next((why for flag, why in NO_TRIP_TIME.items() if flag in flags), None)
+
+
 def _print_table(pairs: list[tuple[str, str]]) -> None:
     w = max(len(k) for k, _ in pairs)
     for k, v in pairs:
@@ -433,13 +452,9 @@ def cmd_simulate(args) -> int:
             unit += f" ({100 * v / (out['battery_MJ'] * 1e6):+.2f} % of the battery)"
             if out["charge_missed"]:
                 unit += f"; beyond {100 * CHARGE_SHARE:g} %: not charge sustaining"
-        if key == "trip_time_s" and "infeasible-route" in out["status"]:  # it printed 0.0 s,
-            # -100 % against Level 3's trip
-            text, unit = "-", ("(an infeasible route: the truck cannot climb it, as Level 3 "
-                               "predicts it; no trip time to compare)")
-        elif key == "trip_time_s" and "unfinished" in out["status"]:  # no trip time either
-            text, unit = "-", ("(the run did not reach the route's end: its fuel and battery "
-                               "figures are over the steps it ran)")
+        why = no_trip_time(out["status"]) if key == "trip_time_s" else None
+        if why is not None:
+            text, unit = "-", f"({why})"
         elif key == "trip_time_s":  # against the Level 3 prediction the run followed
             t3 = out["level3_trip_time_s"]
             unit += (f" (Level 3: {t3:.1f} s, {float(trip_vs_level3_pct(v, t3)):+.2f} %)"
@@ -544,13 +559,21 @@ def cmd_compare(args) -> int:
                                           for _, h, f, _ in COMPARE_COLUMNS)
     print(head + "  status")
     print("-" * (len(head) + 8))
+    whys = []  # why a trip time is '-', in simulate's words (on a route Level 3 predicts the
+    # truck cannot climb, a baseline's trip up it with its motor's help showed 97.9 s)
     for r in rows:
-        cells = "".join(" " + format_or_dash(None if r[k] is None else r[k] * scale, f)
-                        for k, _, f, scale in COMPARE_COLUMNS)
+        why = no_trip_time(r["status"])
+        if why is not None and why not in whys:
+            whys.append(why)
+        cells = "".join(" " + format_or_dash(
+            None if r[k] is None or (k == "trip_time_s" and why) else r[k] * scale, f)
+            for k, _, f, scale in COMPARE_COLUMNS)
         flag = " *" if r["charge_missed"] else ""
         print(f"{r['strategy']:<15}{cells}  {r['status']}{flag}")
     print("corr. = fuel + lambda_b dE_b (the run's first Level 2 costate); savings on corr.; "
-          "- where the reference was not run")
+          "- where the reference was not run or a run is not ok")
+    for why in whys:
+        print(f"- trip s: {why}")
     if any(r["charge_missed"] for r in rows):
         print("* the battery ends more than 1 % of its size from where it started: "
               "not charge sustaining")

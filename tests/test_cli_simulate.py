@@ -445,6 +445,35 @@ def test_compare_cli_json_and_table(capsys):
     assert cells[1] == f"{row['fuel_J'] / 1e6:.3f}" and "-" in cells and cells[-1] == "ok"
 
 
+def test_compare_shows_no_trip_time_where_simulate_shows_none(capsys, monkeypatch):
+    """On a route Level 3 predicts the truck cannot climb, and in an unfinished run, the trip
+    time is '-' in `compare`'s table as in `simulate`'s, with simulate's words once under it
+    (a baseline that crawled up such a route with its motor's help showed its trip, 97.9 s);
+    savings against a run that is not ok are '-' too."""
+    from jaxems import strategies
+    from jaxems.cli import NO_TRIP_TIME
+
+    status = {"conventional": "infeasible-route+unfinished", "baseline": "infeasible-route"}
+    monkeypatch.setattr(strategies, "simulate", _fake_simulate([], status=status))
+    code, out, err = run(capsys, "compare", "short_track")
+    assert code == 0, err
+    lines = out.splitlines()
+    head = next(x for x in lines if x.startswith("strategy"))
+    trip = slice(head.index("   trip s"), head.index("   trip s") + len("   trip s"))
+    saving = slice(head.index(" vs conv. %"), head.index(" vs base. %") + len(" vs base. %"))
+    for s in FAKE:
+        row = next(x for x in lines if x.startswith(s))
+        assert row[trip].strip() == ("153.0" if s == "multilevel" else "-"), row
+        assert row[saving].split() == ["-", "-"], row  # both references are not ok
+    assert [x for x in lines if x.startswith("- trip s: ")] == [
+        f"- trip s: {NO_TRIP_TIME['infeasible-route']}"]
+    # simulate's table says the same of the same run
+    monkeypatch.setattr(strategies, "simulate", lambda *a, **k: _FakeRun(0.0, status["baseline"]))
+    code, out, _ = run(capsys, "simulate", "short_track", "--strategy", "baseline")
+    line = next(x for x in out.splitlines() if x.startswith("trip time"))
+    assert line.split(None, 2)[2] == f"- ({NO_TRIP_TIME['infeasible-route']})"
+
+
 def test_compare_writes_each_runs_traces(capsys, tmp_path, monkeypatch):
     """`compare --traces DIR` makes DIR and writes each strategy's time series and traces there,
     as `simulate --csv / --plot` write them; a DIR that cannot be made is one line before any
