@@ -291,7 +291,7 @@ def register_route(sub) -> None:
     )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
-    p.add_argument("--ds", type=float, default=10.0, help="distance grid step in m (default 10)")
+    p.add_argument("--ds", type=number, default=10.0, help="distance grid step in m (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=cmd_route)
 
@@ -353,8 +353,8 @@ def register_predict(sub) -> None:
     )
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
-    p.add_argument("--ds", type=float, default=10.0, help="distance grid step in m (default 10)")
+    p.add_argument("--dt", type=number, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
+    p.add_argument("--ds", type=number, default=10.0, help="distance grid step in m (default 10)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--csv", metavar="FILE", help="write the time series (t, s, v, a, grade, P_d)")
     p.set_defaults(func=cmd_predict)
@@ -483,7 +483,7 @@ def register_simulate(sub) -> None:
     p.add_argument("--strategy", default="multilevel", metavar="NAME",
                    help="conventional, baseline, multilevel (default), multilevel-mpc, "
                         "dp-bound, multilevel-eco")
-    p.add_argument("--n-iter", dest="n_iter", type=int, default=None, metavar="N",
+    p.add_argument("--n-iter", dest="n_iter", type=whole_number, default=None, metavar="N",
                    help="multilevel iterations (default 2)")
     p.add_argument("--csv", metavar="FILE",
                    help="write the plant's time series (t, s, v, v_ref, E_b, mode, gear, powers, "
@@ -604,12 +604,12 @@ def _run_args(p) -> None:
     the time step, strategy options, --json."""
     p.add_argument("route", metavar="ROUTE", help=".vdri or .csv file, or a bundled route name")
     _common_vehicle(p)
-    p.add_argument("--battery-MJ", dest="battery_MJ", type=float, default=None, metavar="X",
+    p.add_argument("--battery-MJ", dest="battery_MJ", type=number, default=None, metavar="X",
                    help="usable battery energy in MJ (overrides the vehicle file)")
-    p.add_argument("--initial-soc", dest="initial_soc", type=float, default=None, metavar="F",
+    p.add_argument("--initial-soc", dest="initial_soc", type=number, default=None, metavar="F",
                    help="starting charge, a fraction of the battery in [0, 1] (overrides the "
                         "vehicle file)")
-    p.add_argument("--dt", type=float, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
+    p.add_argument("--dt", type=number, default=1.0, help="time step in s, 0.05 to 10 (default 1)")
     p.add_argument("--option", action="append", default=[], metavar="NAME=VALUE",
                    help="a strategy option (a field of jaxems.strategies.Options, as a sweep "
                         "file's [options] table sets it; VALUE in TOML: sustain=false, "
@@ -626,7 +626,7 @@ def _common_vehicle(p) -> None:
     )
     p.add_argument(
         "--mass",
-        type=float,
+        type=number,
         default=None,
         metavar="KG",
         help="vehicle mass in kg (overrides the vehicle file)",
@@ -706,6 +706,16 @@ def script_main(name: str, main, *args) -> int:
         return EXIT_ERROR
 
 
+def number(text: str) -> float:
+    """argparse type: a finite number (a mass, a battery size, a time step)."""
+    return _strict(text, float, "a finite number")
+
+
+def whole_number(text: str) -> int:
+    """argparse type: a whole number (a count of iterations, workers or devices)."""
+    return _strict(text, int, "a whole number")
+
+
 def positive_int(text: str) -> int:
     """argparse type: a whole number >= 1 (a batch, a count of repeats or steps)."""
     return _positive(text, int, "a whole number >= 1")
@@ -717,11 +727,27 @@ def positive_float(text: str) -> float:
 
 
 def _positive(text: str, cast, what: str):
+    x = _strict(text, cast, what)
+    if not x > 0:
+        raise argparse.ArgumentTypeError(f"expected {what} (got {text})")
+    return x
+
+
+def _strict(text: str, cast, what: str):
+    """`text` read by `cast` where it is a finite number written as a route file's cell is
+    (`io._table._NUMBER`: ASCII digits with a point and an exponent), else argparse's error,
+    which names the option. float() and int() alone also read 20_000, other scripts' digits
+    (a full-width 20000) and, float(), nan and inf, which route files refuse."""
+    from .io._table import _NUMBER
+
+    if not _NUMBER.fullmatch(text.strip()):
+        raise argparse.ArgumentTypeError(f"expected {what} in ASCII digits, as route files "
+                                         f"write numbers (got {text!r})")
     try:
         x = cast(text)
-    except ValueError:
+    except ValueError:  # int("2.5")
         raise argparse.ArgumentTypeError(f"expected {what} (got {text!r})") from None
-    if not (math.isfinite(x) and x > 0):
+    if not math.isfinite(x):
         raise argparse.ArgumentTypeError(f"expected {what} (got {text})")
     return x
 

@@ -1436,11 +1436,13 @@ def _in_process_devices(n: int | None) -> None:
 
 
 def _add_sweep_args(p: argparse.ArgumentParser) -> None:
+    from .cli import whole_number
+
     p.add_argument("sweep_file", metavar="SWEEP.toml", help="the sweep file")
     p.add_argument("--out", metavar="DIR", default=None,
                    help="results directory (default sweeps/<sweep file name>)")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--workers", type=int, metavar="N", default=None,
+    g.add_argument("--workers", type=whole_number, metavar="N", default=None,
                    help="start a local Dask cluster of N worker processes")
     g.add_argument("--scheduler", metavar="ADDRESS", default=None,
                    help="send chunks to a running Dask scheduler (tcp://HOST:PORT)")
@@ -1448,7 +1450,7 @@ def _add_sweep_args(p: argparse.ArgumentParser) -> None:
                    help="continue an interrupted sweep in DIR (a plain rerun does the same)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--no-report", action="store_true", help="do not write report.html")
-    p.add_argument("--devices", type=int, metavar="N", default=None,
+    p.add_argument("--devices", type=whole_number, metavar="N", default=None,
                    help="in-process: split each chunk over N CPU devices (default: the cores)")
     p.set_defaults(func=cmd_sweep)
 

@@ -62,9 +62,13 @@ def test_predict_json_mass_and_csv(capsys, tmp_path):
 
 def test_predict_checks_dt_and_writes_its_csv_whole(capsys, tmp_path, monkeypatch):
     csv = tmp_path / "ts.csv"
-    for dt in ("100", "0.001", "nan"):
+    for dt in ("100", "0.001"):
         code, _, err = run(capsys, "predict", "short_track", "--dt", dt, "--csv", str(csv))
         assert code == 1 and "dt: must be a time step from 0.05 to 10 s" in err
+    with pytest.raises(SystemExit) as e:  # not a finite number: the command line's error
+        run(capsys, "predict", "short_track", "--dt", "nan", "--csv", str(csv))
+    assert e.value.code == 2 and "argument --dt: expected a finite number (got nan)" in (
+        capsys.readouterr().err)
     assert not csv.exists()
     # interrupted while writing: no file, no temporary left beside it
     import jaxems.sweep as sw
@@ -198,10 +202,40 @@ def test_scripts_end_bad_input_in_one_line(capsys):
     with pytest.raises(RuntimeError, match="not memory"):  # any other error stays an error
         script_main("exp", other)
     for f, text in ((positive_int, "0"), (positive_int, "1.5"), (positive_float, "-5"),
-                    (positive_float, "nan"), (positive_float, "x")):
+                    (positive_float, "nan"), (positive_float, "x"), (positive_int, "1_0"),
+                    (positive_float, "2_5"), (positive_float, "\uff12")):
         with pytest.raises(argparse.ArgumentTypeError, match="expected a"):
             f(text)
     assert positive_int("3") == 3 and positive_float("2.5") == 2.5
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["simulate", "short_track", "--mass", "20_000"], "argument --mass: expected a finite number "
+                                                      "in ASCII digits, as route files write"),
+    (["simulate", "short_track", "--mass", "\uff12\uff10\uff10\uff10\uff10"],
+     "argument --mass: expected a finite number in ASCII digits"),  # full-width digits
+    (["compare", "short_track", "--battery-MJ", "nan"], "argument --battery-MJ: expected a "
+                                                        "finite number (got nan)"),
+    (["simulate", "short_track", "--initial-soc", "inf"], "argument --initial-soc: expected"),
+    (["route", "short_track", "--ds", "1_0"], "argument --ds: expected a finite number"),
+    (["simulate", "short_track", "--n-iter", "1_0"], "argument --n-iter: expected a whole number"),
+    (["simulate", "short_track", "--n-iter", "2.5"], "argument --n-iter: expected a whole number "
+                                                     "(got '2.5')"),
+    (["sweep", "x.toml", "--workers", "1_6"], "argument --workers: expected a whole number"),
+    (["sweep", "x.toml", "--devices", "\u0664"], "argument --devices: expected a whole number"),
+])
+def test_command_line_numbers_are_read_as_route_files_read_them(capsys, argv, words):
+    """A number on the command line is one as a route file's cell is (`io._table._NUMBER`):
+    float() and int() alone took 20_000, full-width or Arabic-Indic digits as numbers, and nan
+    or inf, which failed later under an internal name (mass_kg: ...). A malformed
+    command line: argparse's error, naming the option, status 2."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert words in capsys.readouterr().err
+    args = build_parser().parse_args(["simulate", "short_track", "--mass", "2e4", "--dt", ".5",
+                                      "--n-iter", "+3", "--initial-soc", "0.25"])
+    assert (args.mass, args.dt, args.n_iter, args.initial_soc) == (20000.0, 0.5, 3, 0.25)
 
 
 def test_predict_vehicle_file(capsys, tmp_path):
