@@ -1253,7 +1253,7 @@ def run_sweep(
     sweep_file: the TOML file (validated completely before any computation); out: results
     directory (default `default_out`); workers: start a local Dask cluster of this many
     processes; scheduler: address of a running Dask scheduler (reached before anything is
-    written: `SweepError` where it cannot be); client: an existing
+    written, where chunks remain: `SweepError` where it cannot be); client: an existing
     `dask.distributed.Client` to use instead; resume: require an existing directory of this
     sweep; quiet: no progress bar; report: write the report at the end; on_chunk: called after
     each chunk file is written (tests).
@@ -1265,25 +1265,35 @@ def run_sweep(
     out = Path(out) if out is not None else default_out(sweep_file)
     check_out_dir(out)
     own_client = None
-    if client is None and scheduler is not None:
+    if client is None and scheduler is not None and _chunks_left(cfg, out):
         # reached before the directory is made: a scheduler that could not be reached left
-        # a skeleton of one (sweep.toml, sweep.json, .lock, chunks/)
+        # a skeleton of one (sweep.toml, sweep.json, .lock, chunks/); not for a finished
+        # sweep, whose rerun writes its results and report again (it failed with the
+        # scheduler gone)
         own_client, _ = _executor(None, scheduler)
     try:
         prepare_dir(cfg, out, resume=resume)
         with dir_lock(out):
             return _run_locked(cfg, out, workers=workers, quiet=quiet, report=report,
-                               client=client or own_client, on_chunk=on_chunk)
+                               client=client or own_client, on_chunk=on_chunk,
+                               scheduler=scheduler)
     finally:
         if own_client is not None:
             own_client.close()
 
 
+def _chunks_left(cfg: SweepConfig, out: Path) -> bool:
+    """Whether a chunk of `cfg` has no finished file in `out` (whether `out` holds this sweep
+    is `prepare_dir`'s to check)."""
+    return not {c.id for c in plan_chunks(cfg)} <= finished_chunks(out)
+
+
 def _run_locked(cfg: SweepConfig, out: Path, *, workers, quiet, report, client,
-                on_chunk) -> SweepSummary:
+                on_chunk, scheduler=None) -> SweepSummary:
     """The sweep in its locked directory; client: a Dask client (the caller's, or the
-    scheduler's that `run_sweep` reached), or None: a local cluster of `workers` processes
-    where chunks remain and workers is given, else in-process."""
+    scheduler's that `run_sweep` reached), or None: where chunks remain, the `scheduler`'s
+    (chunks gone since `run_sweep` found none left) or a local cluster of `workers`
+    processes, else in-process."""
     _clean_temporaries(out)
     chunks = plan_chunks(cfg)
     points = _full_points(cfg)
@@ -1298,7 +1308,7 @@ def _run_locked(cfg: SweepConfig, out: Path, *, workers, quiet, report, client,
     own_client = None
     cluster = None
     if client is None and todo:
-        own_client, cluster = _executor(workers, None, out / "jax-cache")
+        own_client, cluster = _executor(workers, scheduler, out / "jax-cache")
         client = own_client
     backend = "in-process" if client is None else (
         f"Dask, {len(client.scheduler_info().get('workers', {}))} workers")

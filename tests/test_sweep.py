@@ -194,6 +194,31 @@ def test_rerun_and_resume_compute_only_what_is_missing(sweep_a, tmp_path, capsys
     same_table(sw.load_sweep(d), full)
 
 
+def test_a_finished_sweep_needs_no_scheduler(sweep_a, tmp_path, monkeypatch):
+    """A finished sweep run again with --scheduler writes its results and report again without
+    reaching the scheduler (the scheduler, reached first, failed it once the cluster was gone);
+    a sweep with a chunk left reaches it first and fails, its directory as it was."""
+    pytest.importorskip("distributed")
+    monkeypatch.setattr(sw, "SCHEDULER_TIMEOUT_S", 1)
+    p, out, _ = sweep_a
+    d = tmp_path / "copy"
+    shutil.copytree(out, d)
+    (d / "report.html").unlink()
+    summary = sw.run_sweep(p, d, scheduler="tcp://127.0.0.1:1", quiet=True)
+    assert summary.computed_chunks == 0 and (d / "report.html").exists()
+    same_table(sw.load_sweep(d), sw.load_sweep(out))
+    sorted((d / "chunks").glob("*.parquet"))[0].unlink()
+    before = sorted(x.name for x in d.rglob("*"))
+    with pytest.raises(sw.SweepError, match="cannot reach the Dask scheduler at "
+                                            "tcp://127.0.0.1:1"):
+        sw.run_sweep(p, d, scheduler="tcp://127.0.0.1:1", quiet=True)
+    assert sorted(x.name for x in d.rglob("*")) == before
+    # a chunk gone between the look and the lock: the scheduler's still, not in-process
+    monkeypatch.setattr(sw, "_chunks_left", lambda cfg, out: False)
+    with pytest.raises(sw.SweepError, match="cannot reach the Dask scheduler"):
+        sw.run_sweep(p, d, scheduler="tcp://127.0.0.1:1", quiet=True)
+
+
 def test_damaged_results_are_named(sweep_a, tmp_path):
     # a chunk file or the sweep record damaged outside jaxems (its own writes are whole): an
     # error naming the file and what to do, not pyarrow's or json's message alone
