@@ -91,7 +91,9 @@ def test_level2_steps_are_the_full_tables_best_mode_at_the_gear(seed, convention
 def test_gears_of_a_window_are_the_routes_sliced(j, seed):
     """The gear rule and the step table are step by step, so a receding horizon may slice the
     whole route's (`strategies.MpcParams.gears`); and the kernels given those give the same
-    result.
+    result. The kernels read a given (gear, ok) pair through `step_model` (the step table on
+    it), so the sliced pair's model is the sliced route's model, and the kernels are run with
+    that model (a run with the pair too compiled both kernels again for no other path).
     (One window length: each new shape would compile the kernels again.)"""
     rng = np.random.default_rng(seed)
     T, n = 150, 40
@@ -99,16 +101,19 @@ def test_gears_of_a_window_are_the_routes_sliced(j, seed):
     w, mask = rng.uniform(600, 1800, T) * RPM, rng.random(T) < 0.9
     gear, ok = _gears(VP, P_d, v, w, mask)
     sl = slice(j, j + n)
-    g_w, ok_w = _gears(VP, P_d[sl], v[sl], w[sl], mask[sl])
+    window = (VP, P_d[sl], v[sl], w[sl], mask[sl])
+    g_w, ok_w = _gears(*window)
     np.testing.assert_array_equal(np.asarray(gear)[sl], np.asarray(g_w))
     np.testing.assert_array_equal(np.asarray(ok)[sl], np.asarray(ok_w))
-    args = (VP, P_d[sl], v[sl], w[sl], mask[sl], 1.0, 0.5 * VP.E_b_max)
+    args = (*window, 1.0, 0.5 * VP.E_b_max)
     given_g = (np.asarray(gear)[sl], np.asarray(ok)[sl])
-    # and the route's step model (gears and the lambda-free table, `step_model`), sliced
+    # the route's step model (gears and the lambda-free table, `step_model`), sliced: the
+    # window's model, and the model the kernels make of the sliced pair
     given_m = jax.tree.map(lambda a: np.asarray(a)[sl], _model(VP, P_d, v, w, mask))
-    for a, b_ in ((_horizon(*args), _horizon(*args, gears=given_g)),
-                  (_costate(*args), _costate(*args, gears=given_g)),
-                  (_horizon(*args), _horizon(*args, gears=given_m)),
+    for got in (_model(*window), _model(*window, gears=given_g)):
+        for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(given_m), strict=True):
+            np.testing.assert_array_equal(np.asarray(x), y)
+    for a, b_ in ((_horizon(*args), _horizon(*args, gears=given_m)),
                   (_costate(*args), _costate(*args, gears=given_m))):
         for x, y in zip(a, b_, strict=True):
             x, y = np.asarray(x), np.asarray(y)
