@@ -110,12 +110,10 @@ def test_gears_of_a_window_are_the_routes_sliced(j, seed):
     # the route's step model (gears and the lambda-free table, `step_model`), sliced: the
     # window's model, and the model the kernels make of the sliced pair
     given_m = jax.tree.map(lambda a: np.asarray(a)[sl], _model(VP, P_d, v, w, mask))
-    for got in (_model(*window), _model(*window, gears=given_g)):
-        for x, y in zip(jax.tree.leaves(got), jax.tree.leaves(given_m), strict=True):
-            np.testing.assert_array_equal(np.asarray(x), y)
-    for a, b_ in ((_horizon(*args), _horizon(*args, gears=given_m)),
+    for a, b_ in ((_model(*window), given_m), (_model(*window, gears=given_g), given_m),
+                  (_horizon(*args), _horizon(*args, gears=given_m)),
                   (_costate(*args), _costate(*args, gears=given_m))):
-        for x, y in zip(a, b_, strict=True):
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b_), strict=True):
             x, y = np.asarray(x), np.asarray(y)
             if np.issubdtype(x.dtype, np.floating):  # equal on a CPU; a GPU's two programs
                 np.testing.assert_allclose(x, y, rtol=1e-12, atol=0)  # round apart (1 ulp)

@@ -523,6 +523,16 @@ _protect = P.protection(1.0)  # as the plant's step calls it
 _protect_one = xla.jit(_protect)
 _protect_vmap = xla.jit(jax.vmap(_protect, in_axes=(None, 0, None, None, None, None, 0, None,
                                                      None, None)))
+_requested_serves = xla.jit(functools.partial(P.requested_serves, dt=1.0))
+
+
+@xla.jit
+def _serving(vp, E_b, P_need, v, v_after, pb_plan):
+    """(ok_now, ok_after) (S,): every state serves at v, and also at v_after."""
+    ok_now = P.capable(vp, P.all_ranges(vp, v), E_b, P_need, 1.0, pb_plan)
+    return ok_now, ok_now & P.capable(vp, P.all_ranges(vp, v_after), E_b, P_need, 1.0, pb_plan)
+
+
 _S = ps.N_MODES * VP.gear_ratio.shape[0]
 # a plan's battery power holding the motor in the engine's states (`plant.deliverable`), or none
 PB_PLAN = st.one_of(st.just(float("inf")), st.floats(-150e3, 150e3))
@@ -541,11 +551,9 @@ def test_protection_with_its_shortcut_is_the_full_one(v, dv, P_need, E_frac, lam
     args = (VP, E_frac * VP.E_b_max, P_need, v, max(v - dv, 0.1), lam, s_req, s_cur, at_rest,
             pb_plan)
     want = int(_protect_full(*args))
-    known, s = P.requested_serves(*args, dt=1.0)
+    known, s = _requested_serves(*args)
     # the check from the requested state alone is the one from every state's table
-    E_b, v_after = args[1], args[4]
-    ok_now = P.capable(VP, P.all_ranges(VP, v), E_b, P_need, 1.0, pb_plan)
-    ok_after = ok_now & P.capable(VP, P.all_ranges(VP, v_after), E_b, P_need, 1.0, pb_plan)
+    ok_now, ok_after = _serving(VP, args[1], P_need, v, args[4], pb_plan)
     ok = bool(ok_now[s_req]) if s_req == s_cur else bool(ok_after[s_req])
     assert bool(known) == (ok or at_rest) and int(s) == s_req
     if known:
