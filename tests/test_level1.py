@@ -160,6 +160,7 @@ def test_braking_loss_matches_a_loop():
 
 
 _bloss = xla.jit(l1.braking_loss)
+_split = xla.jit(ps.mode_gear_split)
 
 
 @settings(max_examples=30)
@@ -172,7 +173,7 @@ _bloss = xla.jit(l1.braking_loss)
 def test_braking_loss_properties(P_d, v, lam, tau):
     """Never negative; zero when driving and into the open mode; it grows with the open time
     up to one step and no further; a braking step's loss is the state's recuperation value."""
-    H = ps.mode_gear_split(VP, P_d, v, lam).H
+    H = _split(VP, P_d, v, lam).H
     vp = VP.replace(dt_M=tau, dt_G=tau)
     b = np.asarray(_bloss(vp, H, P_d, DT))
     assert np.all(b >= 0.0) and np.all(b[:, ps.MO * 12:] == 0.0)

@@ -409,12 +409,12 @@ def np_mean_grade(s, ds):
 @settings(max_examples=40)
 @given(s=st.floats(0.0, 1200.0), ds=st.floats(0.0, 40.0))
 def test_mean_grade_matches_the_cells_overlaps(s, ds):
-    track = P.make_track(ROUTE, PRED)
-    got = float(P._mean_grade(track, jnp.asarray(s), jnp.asarray(ds)))
+    got = float(_mean_grade(_track(), jnp.asarray(s), jnp.asarray(ds)))
     assert got == pytest.approx(np_mean_grade(s, ds), abs=1e-9)
 
 
 ref_position = xla.jit(P._ref_position)
+_mean_grade = xla.jit(P._mean_grade)
 _track = functools.cache(lambda: P.make_track(ROUTE, PRED))  # after the module fixture
 
 
