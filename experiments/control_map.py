@@ -30,7 +30,7 @@ from matplotlib.colors import ListedColormap  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
 from jaxems.levels import powersplit as ps  # noqa: E402
-from jaxems.cli import positive_float  # noqa: E402
+from jaxems.cli import number, positive_float, whole_number  # noqa: E402
 from jaxems.params import KMH, RPM, load_vehicle  # noqa: E402
 
 COLORS = {ps.MC: "tab:purple", ps.ME: "tab:red", ps.MM: "tab:green", ps.MO: "0.8"}
@@ -47,8 +47,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="experiments/out")
     ap.add_argument("--vehicle", default="reference_truck")
     ap.add_argument("--speed-kmh", type=positive_float, default=83.0)
-    ap.add_argument("--gear", type=int, default=12, help="gear number 1..12")
-    ap.add_argument("--pd-kw", type=float, default=100.0, help="P_d# of Figures 7 and 8")
+    ap.add_argument("--gear", type=whole_number, default=12, help="gear number 1..12")
+    ap.add_argument("--pd-kw", type=number, default=100.0, help="P_d# of Figures 7 and 8")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     vp = load_vehicle(a.vehicle)

@@ -27,7 +27,7 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
-from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import comma_list, number, print_result  # noqa: E402
 from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
@@ -135,9 +135,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--routes", default=",".join(DEFAULT_ROUTES),
                     help="comma-separated route files or bundled names (the VECTO cycles)")
-    ap.add_argument("--mass", type=float, default=20000.0, help="vehicle mass in kg (20000)")
+    ap.add_argument("--mass", type=number, default=20000.0, help="vehicle mass in kg (20000)")
     ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
-    ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
+    ap.add_argument("--dt", type=number, default=1.0, help="time step in s (1)")
     ap.add_argument("--out", default="out/eco", help="folder of the plots (out/eco)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)

@@ -31,7 +31,8 @@ from jax import config
 config.update("jax_enable_x64", True)
 
 from jaxems import powertrain as pt  # noqa: E402
-from jaxems.cli import positive_float, positive_int, print_result, script_main  # noqa: E402
+from jaxems.cli import (positive_float, positive_int, print_result, script_main,  # noqa: E402
+                        whole_number)
 from jaxems.levels import battery as b  # noqa: E402
 from jaxems.params import RPM, load_vehicle  # noqa: E402
 from jaxems.reference import ref_dp  # noqa: E402
@@ -106,7 +107,7 @@ def format_table(out: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--n", type=positive_int, default=600, help="routes (600)")
-    ap.add_argument("--seed", type=int, default=7, help="random seed (7)")
+    ap.add_argument("--seed", type=whole_number, default=7, help="random seed (7)")
     ap.add_argument("--battery-MJ", type=positive_float, default=E_MAX / 1e6,
                     help="battery size in MJ (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")

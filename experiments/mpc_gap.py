@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 
 from jaxems import strategies as S  # noqa: E402
 from jaxems import switching as sw  # noqa: E402
-from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import comma_list, number, print_result  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
 
 FIELDS = ("fuel_J", "fuel_corrected_J", "delta_Eb_J", "lambda_b", "trip_time_s",
@@ -98,7 +98,7 @@ def horizons(text: str) -> list[int]:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--route", default="RegionalDelivery")
-    ap.add_argument("--mass", type=float, default=20000.0)
+    ap.add_argument("--mass", type=number, default=20000.0)
     ap.add_argument("--h1", default="5,20", help="Level 1 horizons (samples), comma-separated")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)

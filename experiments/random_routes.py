@@ -29,7 +29,7 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
-from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import comma_list, number, print_result, whole_number  # noqa: E402
 from jaxems.params import check_vehicle, load_vehicle, with_overrides  # noqa: E402
 from jaxems.report import CHARGE_SHARE, off_charge, trip_vs_level3_pct  # noqa: E402
 from jaxems.route import Route, Row, route_from_rows  # noqa: E402
@@ -185,9 +185,9 @@ def format_table(out: dict) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--n", type=int, default=60, help="number of routes (60)")
-    ap.add_argument("--seed", type=int, default=1, help="random seed (1)")
-    ap.add_argument("--grade-max", type=float, default=8.0, help="largest |gradient| in %% (8)")
+    ap.add_argument("--n", type=whole_number, default=60, help="number of routes (60)")
+    ap.add_argument("--seed", type=whole_number, default=1, help="random seed (1)")
+    ap.add_argument("--grade-max", type=number, default=8.0, help="largest |gradient| in %% (8)")
     ap.add_argument("--masses", default="15000,40000", help="mass range in kg (15000,40000)")
     ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
                     help="comma-separated strategies, conventional among them")

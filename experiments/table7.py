@@ -29,7 +29,7 @@ config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxems import powertrain as pt  # noqa: E402
-from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import comma_list, number, print_result, whole_number  # noqa: E402
 from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.strategies import STRATEGIES, simulate  # noqa: E402
@@ -143,13 +143,13 @@ def format_table(out: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--route", default="short_track", help="route file or bundled name")
-    ap.add_argument("--mass", type=float, default=25000.0, help="vehicle mass in kg (25000)")
+    ap.add_argument("--mass", type=number, default=25000.0, help="vehicle mass in kg (25000)")
     ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
     ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
                     help="comma-separated strategies (default: all rows of the table)")
-    ap.add_argument("--n-iter", dest="n_iter", type=int, default=2,
+    ap.add_argument("--n-iter", dest="n_iter", type=whole_number, default=2,
                     help="multilevel iterations (2: iterations 0 and 1)")
-    ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
+    ap.add_argument("--dt", type=number, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
     strategies = comma_list(args.strategies, "--strategies")

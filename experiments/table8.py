@@ -25,7 +25,7 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
-from jaxems.cli import comma_list, print_result  # noqa: E402
+from jaxems.cli import comma_list, number, print_result  # noqa: E402
 from jaxems.cli import format_or_dash as _f  # noqa: E402  (a number, or "-" for None)
 from jaxems.io import load_route  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
@@ -98,9 +98,9 @@ def main(argv=None) -> int:
                     help="comma-separated route files or bundled names (the VECTO cycles)")
     ap.add_argument("--strategies", default=",".join(DEFAULT_STRATEGIES),
                     help="comma-separated strategies (default: all five)")
-    ap.add_argument("--mass", type=float, default=20000.0, help="vehicle mass in kg (20000)")
+    ap.add_argument("--mass", type=number, default=20000.0, help="vehicle mass in kg (20000)")
     ap.add_argument("--vehicle", default="reference_truck", help="vehicle name or TOML file")
-    ap.add_argument("--dt", type=float, default=1.0, help="time step in s (1)")
+    ap.add_argument("--dt", type=number, default=1.0, help="time step in s (1)")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args(argv)
     return print_result("table8", lambda: run_table(comma_list(args.routes),

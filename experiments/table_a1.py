@@ -20,6 +20,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxems.cli import number  # noqa: E402
 from jaxems.params import load_vehicle  # noqa: E402
 from jaxems.switching import A1_TRANSITIONS, PAPER_A1, PAPER_A1_AVG, table_a1  # noqa: E402
 
@@ -30,7 +31,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--vehicle", default="reference_truck")
-    ap.add_argument("--lam", type=float, default=-2.2, help="lambda_b (default -2.2)")
+    ap.add_argument("--lam", type=number, default=-2.2, help="lambda_b (default -2.2)")
     a = ap.parse_args(argv)
     t = table_a1(load_vehicle(a.vehicle), lam=a.lam)
     rows = [

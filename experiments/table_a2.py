@@ -21,7 +21,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from jaxems.cli import positive_float  # noqa: E402
+from jaxems.cli import number, positive_float  # noqa: E402
 from jaxems.levels.powersplit import MODE_SHORT  # noqa: E402
 from jaxems.params import KMH, load_vehicle  # noqa: E402
 from jaxems.switching import SwitchCostParams, table_a2  # noqa: E402
@@ -41,7 +41,7 @@ def main(argv=None) -> int:
         default="Me",
         help="mode after the switch (its traction recovers the speed)",
     )
-    ap.add_argument("--lambda-t", type=float, default=-25e3, help="J/s (default -25000)")
+    ap.add_argument("--lambda-t", type=number, default=-25e3, help="J/s (default -25000)")
     ap.add_argument("--tau", type=positive_float, default=1.0, help="open driveline time (s)")
     a = ap.parse_args(argv)
     vp = load_vehicle(a.vehicle).replace(mass=a.mass)

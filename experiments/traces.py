@@ -29,7 +29,7 @@ from jax import config
 
 config.update("jax_enable_x64", True)
 
-from jaxems.cli import comma_list  # noqa: E402
+from jaxems.cli import comma_list, number  # noqa: E402
 from jaxems.levels import battery as l2  # noqa: E402
 from jaxems.params import load_vehicle, with_overrides  # noqa: E402
 from jaxems.report import plot_run  # noqa: E402
@@ -63,7 +63,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=Path("out"), help="output folder (out/)")
     ap.add_argument("--figures", default="A2,A3,A4", help="comma-separated: A2, A3, A4")
     ap.add_argument("--route", default="short_track", help="route file or bundled name")
-    ap.add_argument("--mass", type=float, default=25000.0, help="vehicle mass in kg (25000)")
+    ap.add_argument("--mass", type=number, default=25000.0, help="vehicle mass in kg (25000)")
     args = ap.parse_args(argv)
     figs = [f.upper() for f in comma_list(args.figures, "--figures")]
     bad = [f for f in figs if f not in FIGURES]
